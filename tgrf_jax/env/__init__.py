@@ -1,0 +1,11 @@
+"""The functional crowd-navigation environment."""
+
+from tgrf_jax.env.crowd import CrowdNavEnv
+from tgrf_jax.env.types import (
+    COLLISION, OUTCOME_NAMES, RUNNING, SUCCESS, TIMEOUT, EnvParams, EnvState, Humans, Info, Obs, Robot,
+)
+
+__all__ = [
+    "CrowdNavEnv", "EnvParams", "EnvState", "Humans", "Info", "Obs", "Robot",
+    "RUNNING", "SUCCESS", "COLLISION", "TIMEOUT", "OUTCOME_NAMES",
+]

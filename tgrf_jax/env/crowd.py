@@ -1,0 +1,234 @@
+"""The crowd-navigation environment: pure `reset` / `step` in the gymnax 1.0 shape, jit- and vmap-able.
+
+Step order (SPEC A.2 fixes included): clip the robot's action and move it; every human picks a velocity from
+the pre-step joint state and moves; collision (swept over the step), goal and danger are judged on the state
+the action led to; then human goal changes and respawns; then predictions and the new observation.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from typing import Mapping
+
+import chex
+import jax
+import jax.numpy as jnp
+
+from tgrf_jax import reward as reward_lib
+from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
+from tgrf_jax.env import humans as humans_lib
+from tgrf_jax.env import scenario, sensing
+from tgrf_jax.env.types import (
+    COLLISION, RUNNING, SUCCESS, TIMEOUT, EnvParams, EnvState, Info, Obs, Robot,
+)
+
+
+def _as_env_config(config) -> EnvConfig:
+    if config is None:
+        return EnvConfig()
+    if isinstance(config, EnvConfig):
+        return config
+    if isinstance(config, Mapping):
+        return EnvConfig.from_dict(config)
+    if isinstance(config, (str, pathlib.Path)):
+        return EnvConfig.from_yaml(config)
+    raise TypeError(f"env config must be an EnvConfig, a dict or a YAML path, not {type(config).__name__}")
+
+
+def _as_reward_config(reward) -> RewardConfig:
+    if isinstance(reward, RewardConfig):
+        return reward
+    if isinstance(reward, str):
+        return RewardConfig(scheme=reward)
+    if isinstance(reward, Mapping) or reward is None:
+        return reward_config_from_dict(reward)
+    raise TypeError(f"reward must be a RewardConfig, a scheme name or a dict, not {type(reward).__name__}")
+
+
+def move_robot(robot: Robot, action, params: EnvParams, kinematics: str) -> tuple[Robot, jnp.ndarray]:
+    """Apply an action; returns the moved robot and the heading change (for the unicycle spin penalty).
+
+    Non-finite actions are sanitised first (NaN -> 0, +-inf -> large), so no action can corrupt the state.
+    Holonomic: action = (vx, vy), rescaled to norm <= v_max. Unicycle: action = (dv, dtheta), each clipped
+    to its per-step limit, speed clipped to [-v_max, v_max].
+    """
+    action = jnp.nan_to_num(jnp.asarray(action, jnp.float32), nan=0.0, posinf=1e6, neginf=-1e6)
+    if kinematics == "holonomic":
+        speed = jnp.linalg.norm(action)
+        vel = action * jnp.minimum(1.0, params.robot_v_max / jnp.maximum(speed, 1e-12))
+        moved = robot.replace(pos=robot.pos + vel * params.dt, vel=vel)
+        return moved, jnp.zeros(())
+    dv = jnp.clip(action[0], params.unicycle_dv_min, params.unicycle_dv_max)
+    dtheta = jnp.clip(action[1], -params.unicycle_dtheta_max, params.unicycle_dtheta_max)
+    speed = jnp.clip(robot.speed + dv, -params.robot_v_max, params.robot_v_max)
+    heading = robot.heading + dtheta
+    vel = speed * jnp.stack([jnp.cos(heading), jnp.sin(heading)])
+    moved = robot.replace(pos=robot.pos + vel * params.dt, vel=vel, heading=heading, speed=speed)
+    return moved, dtheta
+
+
+def swept_min_distance(rel_start, rel_motion):
+    """Smallest |rel_start + s * rel_motion| over s in [0, 1], per row (N,)."""
+    denom = jnp.sum(jnp.square(rel_motion), -1)
+    s = jnp.clip(-jnp.sum(rel_start * rel_motion, -1) / jnp.maximum(denom, 1e-12), 0.0, 1.0)
+    return jnp.linalg.norm(rel_start + s[:, None] * rel_motion, axis=-1)
+
+
+class CrowdNavEnv:
+    """Socially aware navigation among N humans (CrowdNav++ scenario, SPEC A.1).
+
+    `config` holds the static choices (shapes, code paths) and the defaults of every numeric parameter;
+    `default_params` turns the numeric ones into a traced `EnvParams` pytree.
+    """
+
+    action_size = 2
+
+    def __init__(self, config: EnvConfig | Mapping | str | pathlib.Path | None = None, reward="tgrf"):
+        self.config = _as_env_config(config)
+        self.reward_config = _as_reward_config(reward)
+
+    def __repr__(self):
+        c = self.config
+        return (
+            f"CrowdNavEnv(num_humans={c.num_humans}, human_policy={c.human_policy!r}, "
+            f"predictor={c.predictor!r}, kinematics={c.kinematics!r}, reward={self.reward_config.scheme!r})"
+        )
+
+    @property
+    def default_params(self) -> EnvParams:
+        return EnvParams.from_config(self.config, self.reward_config.params())
+
+    @property
+    def num_humans(self) -> int:
+        return self.config.num_humans
+
+    @property
+    def obs_human_dim(self) -> int:
+        return self.config.obs_human_dim
+
+    # ------------------------------------------------------------------ public API (auto-reset)
+    def reset(self, key, params: EnvParams | None = None) -> tuple[Obs, EnvState]:
+        params = self.default_params if params is None else params
+        return self.reset_env(key, params)
+
+    def step(self, key, state: EnvState, action, params: EnvParams | None = None):
+        """One step with automatic reset: returns (obs, state, reward, terminated, truncated, info).
+
+        When the episode ends, `obs`/`state` already belong to a fresh episode and `info.final_obs` holds the
+        observation of the state the action led to, so a learner can bootstrap through a time-limit
+        truncation (which is not a termination).
+        """
+        params = self.default_params if params is None else params
+        k_step, k_reset = jax.random.split(key)
+        obs, next_state, reward, terminated, truncated, info = self.step_env(k_step, state, action, params)
+        reset_obs, reset_state = self.reset_env(k_reset, params)
+        done = terminated | truncated
+        pick = lambda fresh, cont: jnp.where(done, fresh, cont)
+        next_state = jax.tree_util.tree_map(pick, reset_state, next_state)
+        obs = jax.tree_util.tree_map(pick, reset_obs, obs)
+        return obs, next_state, reward, terminated, truncated, info
+
+    # ------------------------------------------------------------------ dynamics
+    def reset_env(self, key, params: EnvParams) -> tuple[Obs, EnvState]:
+        k_robot, k_humans = jax.random.split(key)
+        tries = self.config.spawn_tries
+        robot = scenario.sample_robot(k_robot, params, tries)
+        humans = scenario.spawn_humans(k_humans, params, robot, self.config.num_humans, tries)
+        state = EnvState(
+            robot=robot,
+            humans=humans,
+            goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
+            step_count=jnp.zeros((), jnp.int32),
+        )
+        visible = sensing.visible_mask(state, params)
+        predictions = humans_lib.predict(humans, params, self.config)
+        return sensing.observe(state, params, predictions, visible), state
+
+    def step_env(self, key, state: EnvState, action, params: EnvParams):
+        """One step without auto-reset: (obs, state, reward, terminated, truncated, info)."""
+        chex.assert_shape(action, (self.action_size,))
+        cfg = self.config
+        k_goal, k_respawn = jax.random.split(key)
+        robot0, humans0 = state.robot, state.humans
+
+        robot, delta_heading = move_robot(robot0, action, params, cfg.kinematics)
+        human_vel = humans_lib.human_velocities(humans0, robot0 if cfg.robot_visible else None, params, cfg)
+        humans = humans0.replace(pos=humans0.pos + human_vel * params.dt, vel=human_vel)
+
+        # Outcome of the action, judged on the post-step state (collision swept over the step).
+        contact = params.robot_radius + humans.radius
+        closest = swept_min_distance(humans0.pos - robot0.pos, (human_vel - robot.vel) * params.dt)
+        collided = jnp.any(closest < contact)
+        dmin = jnp.min(sensing.edge_distances(robot.pos, humans.pos, params.robot_radius, humans.radius),
+                       initial=jnp.inf)
+        goal_dist = jnp.linalg.norm(robot.pos - robot.goal)
+        reached = goal_dist < params.goal_tolerance
+
+        step_count = state.step_count + 1
+        robot_state = robot
+        if cfg.num_humans > 0:
+            humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.spawn_tries)
+            humans = scenario.respawn_arrived(k_respawn, humans, robot, params, cfg.spawn_tries)
+        next_state = EnvState(
+            robot=robot_state, humans=humans, goal_dist_ref=state.goal_dist_ref, step_count=step_count
+        )
+
+        visible = sensing.visible_mask(next_state, params)
+        predictions = humans_lib.predict(humans, params, cfg)
+        if predictions is None:
+            pred_hits = jnp.zeros((cfg.num_humans, 1), bool)
+        else:
+            pred_dist = jnp.linalg.norm(predictions - robot.pos, axis=-1)
+            pred_hits = visible[:, None] & (pred_dist < params.reward.pred_radius)
+
+        terms = reward_lib.step_reward(
+            params.reward,
+            collided=collided,
+            reached=reached,
+            dmin=dmin,
+            delta_d=state.goal_dist_ref - goal_dist,
+            pred_hits=pred_hits,
+            delta_heading=delta_heading,
+            speed=robot.speed,
+        )
+        # The progress reference only moves outside the danger zone, so the first r_pot after leaving it pays
+        # for all the progress made inside (the reference's telescoping potential).
+        in_danger = dmin < params.reward.d_disc
+        next_state = next_state.replace(goal_dist_ref=jnp.where(in_danger, state.goal_dist_ref, goal_dist))
+
+        terminated = collided | reached
+        truncated = (step_count >= params.max_steps) & ~terminated
+        outcome = jnp.select(
+            [collided, reached, truncated], [COLLISION, SUCCESS, TIMEOUT], RUNNING
+        ).astype(jnp.int32)
+
+        future_hit, future_dist = self._future_intrusion(humans, robot.pos, visible, predictions, params)
+        obs = sensing.observe(next_state, params, predictions, visible)
+        info = Info(
+            outcome=outcome,
+            time=step_count.astype(jnp.float32) * params.dt,
+            dmin=dmin,
+            intrusion_disc=in_danger,
+            intrusion_future=future_hit,
+            future_dist=future_dist,
+            path_increment=jnp.linalg.norm(robot.pos - robot0.pos),
+            num_visible=jnp.sum(visible).astype(jnp.int32),
+            reward_terms=terms,
+            final_obs=obs,
+        )
+        return obs, next_state, terms.total, terminated, truncated, info
+
+    def _future_intrusion(self, humans, robot_pos, visible, predictions, params):
+        """itr_future: robot centre within intrusion_radius of a visible human's true position at t+1..t+K."""
+        cfg = self.config
+        if not cfg.track_future_intrusion or cfg.num_humans == 0:
+            return jnp.zeros((), bool), jnp.full((), jnp.inf)
+        if cfg.predictor == "truth":
+            future = predictions
+        else:
+            future = humans_lib.true_future(humans, params, cfg, cfg.pred_horizon)
+        dist = jnp.linalg.norm(future - robot_pos, axis=-1)
+        dist = jnp.where(visible[:, None], dist, jnp.inf)
+        nearest = jnp.min(dist, initial=jnp.inf)
+        hit = nearest < params.intrusion_radius
+        return hit, jnp.where(hit, nearest, jnp.inf)

@@ -1,0 +1,42 @@
+"""What the robot perceives: visibility, distance sorting and the observation pytree."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from tgrf_jax.env.types import EnvParams, EnvState, Obs
+
+
+def edge_distances(robot_pos, human_pos, robot_radius, human_radius):
+    """Edge-to-edge robot-human distances (N,)."""
+    return jnp.linalg.norm(human_pos - robot_pos, axis=-1) - robot_radius - human_radius
+
+
+def visible_mask(state: EnvState, params: EnvParams):
+    """Humans within the 360-degree sensor's edge-to-edge range (N,) bool, in human-index order."""
+    d = edge_distances(state.robot.pos, state.humans.pos, params.robot_radius, state.humans.radius)
+    return d <= params.sensor_range
+
+
+def observe(state: EnvState, params: EnvParams, predictions, visible) -> Obs:
+    """Build the observation; `predictions` are world positions (N, K, 2) or None."""
+    robot, humans = state.robot, state.humans
+    rel = humans.pos - robot.pos
+    features = [rel]
+    if predictions is not None:
+        features.append((predictions - robot.pos).reshape(rel.shape[0], -1))
+    features = jnp.concatenate(features, axis=-1)
+
+    order = jnp.argsort(jnp.where(visible, jnp.linalg.norm(rel, axis=-1), jnp.inf))
+    mask = visible[order]
+    robot_node = jnp.concatenate(
+        [robot.pos, params.robot_radius[None], robot.goal, params.robot_v_max[None], robot.heading[None]]
+    )
+    return Obs(
+        robot_node=robot_node,
+        robot_vel=robot.vel,
+        humans=jnp.where(mask[:, None], features[order], 0.0),
+        human_mask=mask,
+        human_vel=jnp.where(mask[:, None], humans.vel[order], 0.0),
+        human_radius=jnp.where(mask, humans.radius[order], 0.0),
+    )

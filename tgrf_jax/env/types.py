@@ -1,0 +1,134 @@
+"""Pytrees of the crowd environment: traced parameters, state, observation and step info."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+from flax import struct
+
+from tgrf_jax.config import EnvConfig
+from tgrf_jax.reward import RewardParams, RewardTerms
+
+# Episode outcome codes carried in `Info.outcome`.
+RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
+OUTCOME_NAMES = ("running", "success", "collision", "timeout")
+
+
+@struct.dataclass
+class EnvParams:
+    """Every numeric setting of the environment (traced: vmap over any field for grids or randomisation).
+
+    Field meanings are documented on `EnvConfig`, which builds this with `CrowdNavEnv.default_params`.
+    """
+
+    dt: jnp.ndarray
+    time_limit: jnp.ndarray
+    arena_size: jnp.ndarray
+    min_start_goal_dist: jnp.ndarray
+    circle_radius: jnp.ndarray
+    spawn_noise: jnp.ndarray
+    spawn_clearance: jnp.ndarray
+    robot_radius: jnp.ndarray
+    robot_v_max: jnp.ndarray
+    goal_tolerance: jnp.ndarray
+    human_radius_min: jnp.ndarray
+    human_radius_max: jnp.ndarray
+    human_v_pref_min: jnp.ndarray
+    human_v_pref_max: jnp.ndarray
+    sensor_range: jnp.ndarray
+    goal_change_interval: jnp.ndarray
+    goal_change_prob: jnp.ndarray
+    intrusion_radius: jnp.ndarray
+    orca_time_horizon: jnp.ndarray
+    orca_neighbor_dist: jnp.ndarray
+    orca_safety_space: jnp.ndarray
+    sf_a: jnp.ndarray
+    sf_b: jnp.ndarray
+    sf_ki: jnp.ndarray
+    unicycle_dv_min: jnp.ndarray
+    unicycle_dv_max: jnp.ndarray
+    unicycle_dtheta_max: jnp.ndarray
+    reward: RewardParams
+
+    @property
+    def max_steps(self):
+        return jnp.round(self.time_limit / self.dt).astype(jnp.int32)
+
+    @property
+    def goal_change_period(self):
+        return jnp.maximum(jnp.round(self.goal_change_interval / self.dt), 1.0).astype(jnp.int32)
+
+    @classmethod
+    def from_config(cls, config: EnvConfig, reward: RewardParams) -> "EnvParams":
+        numeric = {
+            f.name: jnp.asarray(getattr(config, f.name), jnp.float32)
+            for f in dataclasses.fields(cls)
+            if f.name != "reward"
+        }
+        return cls(**numeric, reward=reward)
+
+
+@struct.dataclass
+class Humans:
+    """True state of the N humans (world frame)."""
+
+    pos: jnp.ndarray  # (N, 2)
+    vel: jnp.ndarray  # (N, 2) velocity applied during the last step
+    goal: jnp.ndarray  # (N, 2)
+    radius: jnp.ndarray  # (N,)
+    v_pref: jnp.ndarray  # (N,)
+
+
+@struct.dataclass
+class Robot:
+    pos: jnp.ndarray  # (2,)
+    vel: jnp.ndarray  # (2,) velocity applied during the last step
+    goal: jnp.ndarray  # (2,)
+    heading: jnp.ndarray  # () rad; stays pi/2 for holonomic robots, as in the reference
+    speed: jnp.ndarray  # () signed forward speed (unicycle)
+
+
+@struct.dataclass
+class EnvState:
+    robot: Robot
+    humans: Humans
+    goal_dist_ref: jnp.ndarray  # () goal distance at the last step outside the danger zone (for r_pot)
+    step_count: jnp.ndarray  # () int32 steps taken in this episode
+
+
+@struct.dataclass
+class Obs:
+    """What the robot perceives. Human rows are sorted by distance, visible ones first.
+
+    robot_node:  (7,)  [px, py, radius, gx, gy, v_max, heading], world frame (as the reference's robot_node)
+    robot_vel:   (2,)  last applied robot velocity
+    humans:      (N, D) per human: position relative to the robot, then K predicted positions relative to the
+                 robot's current position (D = 2 (K + 1), or 2 without predictions); zero where not visible
+    human_mask:  (N,)  bool, True for humans within sensor range (a mask, never a magic coordinate)
+    human_vel:   (N, 2) velocities of visible humans (used by the ORCA-robot baseline; zero where masked)
+    human_radius:(N,)  radii of visible humans (zero where masked)
+    """
+
+    robot_node: jnp.ndarray
+    robot_vel: jnp.ndarray
+    humans: jnp.ndarray
+    human_mask: jnp.ndarray
+    human_vel: jnp.ndarray
+    human_radius: jnp.ndarray
+
+
+@struct.dataclass
+class Info:
+    """Everything metrics need about one step (values refer to the step's post-step state, before auto-reset)."""
+
+    outcome: jnp.ndarray  # () int32: RUNNING, SUCCESS, COLLISION or TIMEOUT
+    time: jnp.ndarray  # () seconds elapsed in the episode after this step
+    dmin: jnp.ndarray  # () nearest edge-to-edge robot-human distance (inf without humans)
+    intrusion_disc: jnp.ndarray  # () bool, dmin < d_disc
+    intrusion_future: jnp.ndarray  # () bool, robot within intrusion_radius of a visible human's true future
+    future_dist: jnp.ndarray  # () smallest such centre distance (inf when not tracked / no intrusion)
+    path_increment: jnp.ndarray  # () distance the robot moved this step
+    num_visible: jnp.ndarray  # () int32
+    reward_terms: RewardTerms
+    final_obs: Obs  # observation of the post-step state before any auto-reset (for bootstrapping)
