@@ -94,6 +94,14 @@ class CrowdNavEnv:
             f"predictor={c.predictor!r}, kinematics={c.kinematics!r}, reward={self.reward_config.scheme!r})"
         )
 
+    # Environments with equal configs are interchangeable, so jit caches keyed on them are shared.
+    def __eq__(self, other):
+        return isinstance(other, CrowdNavEnv) and (self.config, self.reward_config) == (
+            other.config, other.reward_config)
+
+    def __hash__(self):
+        return hash((self.config, self.reward_config))
+
     @property
     def default_params(self) -> EnvParams:
         return EnvParams.from_config(self.config, self.reward_config.params())
@@ -165,12 +173,11 @@ class CrowdNavEnv:
         reached = goal_dist < params.goal_tolerance
 
         step_count = state.step_count + 1
-        robot_state = robot
         if cfg.num_humans > 0:
             humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.spawn_tries)
             humans = scenario.respawn_arrived(k_respawn, humans, robot, params, cfg.spawn_tries)
         next_state = EnvState(
-            robot=robot_state, humans=humans, goal_dist_ref=state.goal_dist_ref, step_count=step_count
+            robot=robot, humans=humans, goal_dist_ref=state.goal_dist_ref, step_count=step_count
         )
 
         visible = sensing.visible_mask(next_state, params)

@@ -13,45 +13,75 @@ import jax.numpy as jnp
 from tgrf_jax.env.types import EnvParams, Humans, Robot
 
 
-def pick_first_valid(valid, score):
-    """Index of the first True in `valid` (tries,), else the index of the highest `score`."""
-    first = jnp.argmax(valid)
-    return jnp.where(jnp.any(valid), first, jnp.argmax(score))
+def _mix32(x):
+    """murmur3's 32-bit finaliser: a cheap bijective integer hash with full avalanche."""
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(0x85EBCA6B)
+    x = x ^ (x >> 13)
+    x = x * jnp.uint32(0xC2B2AE35)
+    return x ^ (x >> 16)
+
+
+def uniform(key, shape, minval=0.0, maxval=1.0):
+    """Uniform floats in [minval, maxval) from one key, drawn by hashing a counter.
+
+    Scene sampling needs thousands of numbers per step and XLA:CPU's threefry costs ~13 ns per number, more
+    than the whole crowd simulation; here threefry draws only a 64-bit seed per call and a counter hash
+    expands it. Still a pure function of the key, so runs stay reproducible.
+    """
+    seed = jax.random.bits(key, (2,), jnp.uint32)
+    size = 1
+    for d in shape:
+        size *= d
+    counter = jnp.arange(size, dtype=jnp.uint32).reshape(shape)
+    bits = _mix32(_mix32(counter * jnp.uint32(0x9E3779B9) + seed[0]) ^ seed[1])
+    unit = (bits >> 8).astype(jnp.float32) * jnp.float32(2.0**-24)
+    return minval + unit * (maxval - minval)
 
 
 def sample_robot(key, params: EnvParams, tries: int) -> Robot:
     """Start and goal ~ U(-a, a)^2 each, at least `min_start_goal_dist` apart."""
-    pts = jax.random.uniform(key, (tries, 2, 2), minval=-params.arena_size, maxval=params.arena_size)
-    dist = jnp.linalg.norm(pts[:, 0] - pts[:, 1], axis=-1)
-    idx = pick_first_valid(dist >= params.min_start_goal_dist, dist)
+    pts = uniform(key, (tries, 2, 2), minval=-params.arena_size, maxval=params.arena_size)
+    dist = jnp.sqrt(jnp.sum(jnp.square(pts[:, 0] - pts[:, 1]), axis=-1))
+    start_goal = choose(pts.reshape(tries, 4), dist - params.min_start_goal_dist).reshape(2, 2)
     zero = jnp.zeros((), jnp.float32)
     return Robot(
-        pos=pts[idx, 0], vel=jnp.zeros(2), goal=pts[idx, 1], heading=zero + jnp.pi / 2, speed=zero
+        pos=start_goal[0], vel=jnp.zeros(2), goal=start_goal[1], heading=zero + jnp.pi / 2, speed=zero
     )
 
 
 def sample_attributes(key, params: EnvParams, shape=()):
     """Radius and preferred speed of newly spawned humans."""
     k_r, k_v = jax.random.split(key)
-    radius = jax.random.uniform(k_r, shape, minval=params.human_radius_min, maxval=params.human_radius_max)
-    v_pref = jax.random.uniform(k_v, shape, minval=params.human_v_pref_min, maxval=params.human_v_pref_max)
+    radius = uniform(k_r, shape, minval=params.human_radius_min, maxval=params.human_radius_max)
+    v_pref = uniform(k_v, shape, minval=params.human_v_pref_min, maxval=params.human_v_pref_max)
     return radius, v_pref
 
 
 def circle_candidates(key, params: EnvParams, shape):
     """Spawn points on the crossing circle with one-sided noise in [0, noise) per axis, as the reference."""
     k_a, k_n = jax.random.split(key)
-    angle = jax.random.uniform(k_a, shape, maxval=2 * jnp.pi)
-    noise = jax.random.uniform(k_n, shape + (2,)) * params.spawn_noise
+    angle = uniform(k_a, shape, maxval=2 * jnp.pi)
+    noise = uniform(k_n, shape + (2,)) * params.spawn_noise
     return params.circle_radius * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1) + noise
 
 
 def goal_candidates(key, params: EnvParams, v_pref, shape):
     """New goals on the circle with symmetric noise (U - 0.5) * v_pref per axis (goal changes)."""
     k_a, k_n = jax.random.split(key)
-    angle = jax.random.uniform(k_a, shape, maxval=2 * jnp.pi)
-    noise = (jax.random.uniform(k_n, shape + (2,)) - 0.5) * v_pref[..., None, None]
+    angle = uniform(k_a, shape, maxval=2 * jnp.pi)
+    noise = (uniform(k_n, shape + (2,)) - 0.5) * v_pref[..., None, None]
     return params.circle_radius * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1) + noise
+
+
+def _pair_dist(a, b):
+    """Distances between points a (..., T, 2) and b (..., M, 2) -> (..., T, M).
+
+    x and y are handled as separate arrays: a norm over a trailing axis of size 2 vectorises badly on CPU.
+    """
+    dx = a[..., :, None, 0] - b[..., None, :, 0]
+    dy = a[..., :, None, 1] - b[..., None, :, 1]
+    return jnp.sqrt(dx * dx + dy * dy)
 
 
 def clearance(candidates, own_radius, others_pos, others_goal, others_radius, others_valid, gap):
@@ -61,10 +91,8 @@ def clearance(candidates, own_radius, others_pos, others_goal, others_radius, ot
     agent's position and goal (the reference's spawn rule). `others_*` have shape (..., M, ...).
     """
     need = own_radius[..., None, None] + others_radius[..., None, :] + gap  # (..., 1, M)
-    d_pos = jnp.linalg.norm(candidates[..., :, None, :] - others_pos[..., None, :, :], axis=-1)
-    d_goal = jnp.linalg.norm(candidates[..., :, None, :] - others_goal[..., None, :, :], axis=-1)
-    margin = jnp.minimum(d_pos, d_goal) - need
-    margin = jnp.where(others_valid[..., None, :], margin, jnp.inf)
+    dist = jnp.minimum(_pair_dist(candidates, others_pos), _pair_dist(candidates, others_goal))
+    margin = jnp.where(others_valid[..., None, :], dist - need, jnp.inf)
     return jnp.min(margin, axis=-1, initial=jnp.inf)
 
 
@@ -72,6 +100,9 @@ def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: i
     """Place humans one at a time on the circle, each clear of the robot and every human placed before."""
     k_attr, k_cand = jax.random.split(key)
     radius, v_pref = sample_attributes(k_attr, params, (num_humans,))
+    if num_humans == 0:
+        empty = jnp.zeros((0, 2))
+        return Humans(pos=empty, vel=empty, goal=empty, radius=radius, v_pref=v_pref)
     candidates = circle_candidates(k_cand, params, (num_humans, tries))
 
     # Slot 0 of the "others" arrays is the robot; slots 1..N fill up with placed humans.
@@ -85,7 +116,7 @@ def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: i
         margin = clearance(
             candidates[i], radius[i], others_pos, others_goal, others_radius, placed, params.spawn_clearance
         )
-        pos = candidates[i, pick_first_valid(margin >= 0, margin)]
+        pos = choose(candidates[i], margin)
         carry = (others_pos.at[i + 1].set(pos), others_goal.at[i + 1].set(-pos), placed.at[i + 1].set(True))
         return carry, None
 
@@ -98,14 +129,21 @@ def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: i
 
 
 def _others_excluding_self(humans: Humans, robot: Robot, params: EnvParams):
-    """Per-human view of every other agent: arrays (N, N+1, ...) with the robot last and self masked out."""
+    """Every agent (humans, then the robot) with a (N, N+1) mask hiding each human from itself."""
     n = humans.pos.shape[0]
     pos = jnp.concatenate([humans.pos, robot.pos[None]], 0)
     goal = jnp.concatenate([humans.goal, robot.goal[None]], 0)
     radius = jnp.concatenate([humans.radius, params.robot_radius[None]], 0)
-    valid = ~jnp.eye(n, n + 1, dtype=bool)
-    tile = lambda x: jnp.broadcast_to(x, (n,) + x.shape)
-    return tile(pos), tile(goal), tile(radius), valid
+    return pos, goal, radius, ~jnp.eye(n, n + 1, dtype=bool)
+
+
+def choose(candidates, margin):
+    """Per row, the first candidate with margin >= 0 (else the widest margin): (..., T, 2) -> (..., 2)."""
+    tries = margin.shape[-1]
+    first = jnp.argmax(margin >= 0, axis=-1)
+    idx = jnp.where(jnp.any(margin >= 0, axis=-1), first, jnp.argmax(margin, axis=-1))
+    onehot = (jnp.arange(tries) == idx[..., None]).astype(candidates.dtype)
+    return jnp.sum(onehot[..., None] * candidates, axis=-2)
 
 
 def change_goals(key, humans: Humans, robot: Robot, params: EnvParams, step_count, tries: int) -> Humans:
@@ -113,24 +151,22 @@ def change_goals(key, humans: Humans, robot: Robot, params: EnvParams, step_coun
     n = humans.pos.shape[0]
     k_coin, k_cand = jax.random.split(key)
     due = (step_count % params.goal_change_period) == 0
-    switch = due & jax.random.bernoulli(k_coin, params.goal_change_prob, (n,))
+    switch = due & (uniform(k_coin, (n,)) < params.goal_change_prob)
     candidates = goal_candidates(k_cand, params, humans.v_pref, (n, tries))
     margin = clearance(candidates, humans.radius, *_others_excluding_self(humans, robot, params), params.spawn_clearance)
-    idx = jax.vmap(pick_first_valid)(margin >= 0, margin)
-    new_goal = jnp.take_along_axis(candidates, idx[:, None, None], axis=1)[:, 0]
-    return humans.replace(goal=jnp.where(switch[:, None], new_goal, humans.goal))
+    return humans.replace(goal=jnp.where(switch[:, None], choose(candidates, margin), humans.goal))
 
 
 def respawn_arrived(key, humans: Humans, robot: Robot, params: EnvParams, tries: int) -> Humans:
     """Humans within their own radius of their goal are replaced by fresh circle-crossing humans."""
     n = humans.pos.shape[0]
     k_attr, k_cand = jax.random.split(key)
-    arrived = jnp.linalg.norm(humans.pos - humans.goal, axis=-1) < humans.radius
+    offset = humans.pos - humans.goal
+    arrived = jnp.square(offset[:, 0]) + jnp.square(offset[:, 1]) < jnp.square(humans.radius)
     radius, v_pref = sample_attributes(k_attr, params, (n,))
     candidates = circle_candidates(k_cand, params, (n, tries))
     margin = clearance(candidates, radius, *_others_excluding_self(humans, robot, params), params.spawn_clearance)
-    idx = jax.vmap(pick_first_valid)(margin >= 0, margin)
-    pos = jnp.take_along_axis(candidates, idx[:, None, None], axis=1)[:, 0]
+    pos = choose(candidates, margin)
     fresh = Humans(pos=pos, vel=jnp.zeros_like(pos), goal=-pos, radius=radius, v_pref=v_pref)
     return jax.tree_util.tree_map(
         lambda new, old: jnp.where(arrived.reshape((n,) + (1,) * (old.ndim - 1)), new, old), fresh, humans

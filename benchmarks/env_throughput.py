@@ -1,0 +1,88 @@
+"""Environment throughput: env-steps/s of jit(vmap(step)) for batch sizes x human counts x human policies.
+
+Each measurement runs a compiled `lax.scan` of T auto-reset steps over B parallel environments, with
+constant-velocity predictions (K = 5), the TGRF reward and a straight-to-goal robot, and reports B * T / time
+(compile time separately). In the same run, Python-RVO2's raw 20-agent doStep rate is timed as the on-machine
+reference for a compiled ORCA step.
+
+    python -m benchmarks.env_throughput --quick --out bench_results/env_quick.json
+    python -m benchmarks.env_throughput --out bench_results/env_full.json
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+
+from benchmarks.common import machine_info, time_call, write_json
+from tgrf_jax import CrowdNavEnv
+from tgrf_jax.policies import StraightPolicy
+
+
+def make_runner(env: CrowdNavEnv, n_steps: int):
+    params = env.default_params
+    step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    act = jax.vmap(StraightPolicy.action)
+
+    def body(carry, key):
+        obs, state = carry
+        obs, state, reward, *_ = step(jax.random.split(key, obs.robot_node.shape[0]), state, act(obs), params)
+        return (obs, state), reward.mean()
+
+    @jax.jit
+    def run(key, obs, state):
+        return jax.lax.scan(body, (obs, state), jax.random.split(key, n_steps))
+
+    return run, params
+
+
+def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int) -> dict:
+    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": "const_vel"})
+    run, params = make_runner(env, n_steps)
+    keys = jax.random.split(jax.random.key(0), batch)
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    compile_s, run_s = time_call(run, jax.random.key(1), obs, state, repeats=repeats)
+    return {
+        "policy": policy, "num_humans": num_humans, "batch": batch, "steps_per_call": n_steps,
+        "compile_s": round(compile_s, 3), "run_s": round(run_s, 5), "env_steps_per_s": batch * n_steps / run_s,
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="20 humans, a few batch sizes (< 1 minute)")
+    parser.add_argument("--out", help="write results as JSON here")
+    args = parser.parse_args(argv)
+
+    if args.quick:
+        grid = [(p, 20, b) for p in ("orca", "social_force") for b in (1, 1024)]
+        repeats = 2
+    else:
+        grid = [(p, n, b) for p in ("orca", "social_force") for n in (5, 10, 20, 50)
+                for b in (1, 16, 256, 1024, 4096)]
+        repeats = 3
+    info = machine_info()
+    print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")
+    rows = []
+    print(f"{'policy':>13} {'humans':>6} {'batch':>6} {'compile s':>9} {'env-steps/s':>12}")
+    for policy, n, batch in grid:
+        n_steps = 200 if batch <= 16 else 50 if batch <= 1024 else 20
+        row = measure(policy, n, batch, n_steps, repeats)
+        rows.append(row)
+        print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {row['env_steps_per_s']:>12,.0f}", flush=True)
+
+    from benchmarks.orca_throughput import rvo2_dostep_rate
+
+    rvo2 = rvo2_dostep_rate(20, 2000 if args.quick else 20000)
+    print(f"Python-RVO2 raw doStep, 20 agents, one core: {rvo2:,.0f} steps/s")
+    best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20), key=lambda r: r["env_steps_per_s"])
+    print(f"best ORCA-20 env: {best['env_steps_per_s']:,.0f} env-steps/s at batch {best['batch']} "
+          f"= {best['env_steps_per_s'] / rvo2:.1f}x RVO2's raw doStep")
+    write_json(args.out, {"benchmark": "env_throughput", "quick": args.quick, "machine": info,
+                          "rvo2_dostep_20_per_s": rvo2, "results": rows})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,54 @@
+"""Shared test helpers: small environments and hand-built states."""
+
+import jax
+import jax.numpy as jnp
+
+from tgrf_jax import CrowdNavEnv
+from tgrf_jax.env import EnvState, Humans, Robot
+
+
+def make_env(**overrides) -> CrowdNavEnv:
+    reward = overrides.pop("reward", "tgrf")
+    return CrowdNavEnv(overrides, reward)
+
+
+def hand_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None, radius=0.3, v_pref=1.0):
+    """An EnvState with the robot and humans exactly where a test wants them."""
+    human_pos = jnp.asarray(human_pos, jnp.float32).reshape(-1, 2)
+    n = human_pos.shape[0]
+    human_vel = jnp.zeros((n, 2)) if human_vel is None else jnp.asarray(human_vel, jnp.float32)
+    # Default goals lie far away so no human counts as arrived (and respawns) during a short test.
+    human_goal = human_pos + jnp.array([0.0, 100.0]) if human_goal is None else jnp.asarray(human_goal, jnp.float32)
+    robot = Robot(
+        pos=jnp.asarray(robot_pos, jnp.float32), vel=jnp.zeros(2), goal=jnp.asarray(robot_goal, jnp.float32),
+        heading=jnp.float32(jnp.pi / 2), speed=jnp.float32(0.0),
+    )
+    humans = Humans(
+        pos=human_pos, vel=human_vel, goal=human_goal,
+        radius=jnp.full((n,), radius, jnp.float32), v_pref=jnp.full((n,), v_pref, jnp.float32),
+    )
+    return EnvState(robot=robot, humans=humans, goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
+                    step_count=jnp.zeros((), jnp.int32))
+
+
+def rollout(env, key, params, n_steps, policy_fn):
+    """Jitted scan of `n_steps` auto-reset steps with actions from policy_fn(obs); returns stacked outputs."""
+
+    def body(carry, k):
+        obs, state = carry
+        action = policy_fn(obs)
+        obs, state, reward, term, trunc, info = env.step(k, state, action, params)
+        return (obs, state), (state, reward, term, trunc, info)
+
+    @jax.jit
+    def run(key):
+        k0, k1 = jax.random.split(key)
+        obs, state = env.reset(k0, params)
+        return jax.lax.scan(body, (obs, state), jax.random.split(k1, n_steps))[1]
+
+    return run(key)
+
+
+def to_goal(obs):
+    offset = obs.robot_node[3:5] - obs.robot_node[:2]
+    return offset / jnp.maximum(jnp.linalg.norm(offset), 1e-6)

@@ -1,0 +1,112 @@
+"""Invariants of the environment checked on hypothesis-generated actions and scenes."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from helpers import make_env
+from tgrf_jax.env import sensing
+
+ENV = make_env(num_humans=5, predictor="const_vel")
+PARAMS = ENV.default_params
+RESET = jax.jit(ENV.reset)
+STEP = jax.jit(ENV.step)
+STEP_NO_RESET = jax.jit(ENV.step_env)
+UNICYCLE = make_env(num_humans=5, predictor="none", kinematics="unicycle")
+U_RESET = jax.jit(UNICYCLE.reset)
+U_STEP = jax.jit(UNICYCLE.step)
+
+any_float = st.floats(allow_nan=True, allow_infinity=True, width=32)
+actions = st.lists(st.tuples(any_float, any_float), min_size=1, max_size=12)
+seeds = st.integers(0, 2**31 - 1)
+FAST = settings(max_examples=30, deadline=None)
+
+
+def _run(reset, step, seed, action_list, params):
+    key = jax.random.key(seed)
+    obs, state = reset(key, params)
+    out = []
+    for i, a in enumerate(action_list):
+        prev = state
+        obs, state, reward, term, trunc, info = step(jax.random.fold_in(key, i), state, jnp.array(a, jnp.float32), params)
+        out.append((prev, obs, state, reward, info))
+    return out
+
+
+def _finite(tree):
+    return all(np.all(np.isfinite(np.asarray(x, dtype=np.float64))) for x in jax.tree_util.tree_leaves(tree)
+               if np.issubdtype(np.asarray(x).dtype, np.floating))
+
+
+@FAST
+@given(seed=seeds, action_list=actions)
+def test_any_action_gives_finite_state_and_bounded_speed(seed, action_list):
+    for prev, obs, state, reward, info in _run(RESET, STEP, seed, action_list, PARAMS):
+        assert _finite(state.robot) and _finite(state.humans) and _finite(obs)
+        assert np.isfinite(float(reward))
+        assert float(jnp.linalg.norm(state.robot.vel)) <= float(PARAMS.robot_v_max) + 1e-5
+        assert float(info.path_increment) <= float(PARAMS.robot_v_max * PARAMS.dt) + 1e-5
+
+
+@FAST
+@given(seed=seeds, action_list=actions)
+def test_unicycle_any_action_stays_within_limits(seed, action_list):
+    params = UNICYCLE.default_params
+    for prev, obs, state, reward, info in _run(U_RESET, U_STEP, seed, action_list, params):
+        assert _finite(state.robot) and np.isfinite(float(reward))
+        assert abs(float(state.robot.speed)) <= float(params.robot_v_max) + 1e-6
+        if int(state.step_count) > 0:  # not a fresh episode
+            assert abs(float(state.robot.heading - prev.robot.heading)) <= float(params.unicycle_dtheta_max) + 1e-6
+
+
+@FAST
+@given(seed=seeds, sensor_range=st.floats(0.0, 12.0))
+def test_masks_agree_with_distances(seed, sensor_range):
+    params = PARAMS.replace(sensor_range=jnp.float32(sensor_range))
+    obs, state = RESET(jax.random.key(seed), params)
+    edge = np.asarray(sensing.edge_distances(state.robot.pos, state.humans.pos, params.robot_radius, state.humans.radius))
+    visible = edge <= sensor_range
+    assert int(obs.human_mask.sum()) == int(visible.sum())
+    # Visible rows come first, sorted by distance, and match the visible humans' relative positions.
+    k = int(visible.sum())
+    assert np.all(np.asarray(obs.human_mask[:k])) and not np.any(np.asarray(obs.human_mask[k:]))
+    rel = np.asarray(state.humans.pos - state.robot.pos)[visible]
+    expected = rel[np.argsort(np.linalg.norm(rel, axis=-1))]
+    np.testing.assert_allclose(np.asarray(obs.humans[:k, :2]), expected, atol=1e-5)
+    assert np.all(np.asarray(obs.humans[k:]) == 0.0)
+
+
+@FAST
+@given(seed=seeds, n_steps=st.integers(1, 8))
+def test_same_key_same_trajectory(seed, n_steps):
+    acts = [(0.5, -0.3)] * n_steps
+    a = _run(RESET, STEP, seed, acts, PARAMS)
+    b = _run(RESET, STEP, seed, acts, PARAMS)
+    for (_, _, sa, ra, _), (_, _, sb, rb, _) in zip(a, b):
+        for x, y in zip(jax.tree_util.tree_leaves(sa), jax.tree_util.tree_leaves(sb)):
+            np.testing.assert_array_equal(x, y)
+        assert float(ra) == float(rb)
+
+
+@FAST
+@given(seed=seeds)
+def test_respawned_humans_are_valid(seed):
+    key = jax.random.key(seed)
+    obs, state = RESET(key, PARAMS)
+    # Put every human on its goal so that all of them respawn in the next step.
+    state = state.replace(humans=state.humans.replace(goal=state.humans.pos))
+    obs, nxt, *_ = STEP_NO_RESET(key, state, jnp.zeros(2), PARAMS)
+    h = nxt.humans
+    r = np.linalg.norm(np.asarray(h.pos), axis=-1)
+    bound = float(PARAMS.circle_radius), float(PARAMS.spawn_noise) * np.sqrt(2)
+    assert np.all((r >= bound[0] - bound[1] - 1e-4) & (r <= bound[0] + bound[1] + 1e-4))
+    np.testing.assert_allclose(np.asarray(h.goal), -np.asarray(h.pos), atol=1e-6)
+    assert np.all(np.asarray(h.vel) == 0.0)
+    assert np.all((np.asarray(h.radius) >= 0.3) & (np.asarray(h.radius) <= 0.5))
+    assert np.all((np.asarray(h.v_pref) >= 0.5) & (np.asarray(h.v_pref) <= 1.5))
+    # Respawned humans keep clear of the robot (its position and goal).
+    for p in np.asarray(h.pos):
+        for q in (np.asarray(nxt.robot.pos), np.asarray(nxt.robot.goal)):
+            assert np.linalg.norm(p - q) > 0.3 + 0.3
