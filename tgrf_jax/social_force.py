@@ -9,11 +9,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-
-def safe_norm(x, axis=-1, eps=1e-12):
-    """Euclidean norm whose value and gradient stay finite at zero."""
-    sq = jnp.sum(jnp.square(x), axis=axis)
-    return jnp.sqrt(jnp.maximum(sq, eps))
+from tgrf_jax.geometry import safe_norm
 
 
 def step(positions, velocities, goals, radii, v_pref, *, a, b, ki, dt, neighbor_mask=None):

@@ -18,6 +18,7 @@ from tgrf_jax import reward as reward_lib
 from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
 from tgrf_jax.env import humans as humans_lib
 from tgrf_jax.env import scenario, sensing
+from tgrf_jax.geometry import norm
 from tgrf_jax.env.types import (
     COLLISION, RUNNING, SUCCESS, TIMEOUT, EnvParams, EnvState, Info, Obs, Robot,
 )
@@ -69,9 +70,9 @@ def move_robot(robot: Robot, action, params: EnvParams, kinematics: str) -> tupl
 
 def swept_min_distance(rel_start, rel_motion):
     """Smallest |rel_start + s * rel_motion| over s in [0, 1], per row (N,)."""
-    denom = jnp.sum(jnp.square(rel_motion), -1)
-    s = jnp.clip(-jnp.sum(rel_start * rel_motion, -1) / jnp.maximum(denom, 1e-12), 0.0, 1.0)
-    return jnp.linalg.norm(rel_start + s[:, None] * rel_motion, axis=-1)
+    denom = jnp.square(rel_motion[:, 0]) + jnp.square(rel_motion[:, 1])
+    s = jnp.clip(-(rel_start[:, 0] * rel_motion[:, 0] + rel_start[:, 1] * rel_motion[:, 1]) / jnp.maximum(denom, 1e-12), 0.0, 1.0)
+    return norm(rel_start + s[:, None] * rel_motion)
 
 
 class CrowdNavEnv:
@@ -185,7 +186,7 @@ class CrowdNavEnv:
         if predictions is None:
             pred_hits = jnp.zeros((cfg.num_humans, 1), bool)
         else:
-            pred_dist = jnp.linalg.norm(predictions - robot.pos, axis=-1)
+            pred_dist = norm(predictions - robot.pos)
             pred_hits = visible[:, None] & (pred_dist < params.reward.pred_radius)
 
         terms = reward_lib.step_reward(
@@ -234,7 +235,7 @@ class CrowdNavEnv:
             future = predictions
         else:
             future = humans_lib.true_future(humans, params, cfg, cfg.pred_horizon)
-        dist = jnp.linalg.norm(future - robot_pos, axis=-1)
+        dist = norm(future - robot_pos)
         dist = jnp.where(visible[:, None], dist, jnp.inf)
         nearest = jnp.min(dist, initial=jnp.inf)
         hit = nearest < params.intrusion_radius

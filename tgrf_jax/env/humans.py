@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from tgrf_jax import orca, social_force
+from tgrf_jax.geometry import safe_norm
 from tgrf_jax.config import EnvConfig
 from tgrf_jax.env.types import EnvParams, Humans, Robot
 
@@ -13,7 +14,7 @@ from tgrf_jax.env.types import EnvParams, Humans, Robot
 def preferred_velocity(pos, goal):
     """Unit vector towards the goal, or the raw offset within 1 m of it (RVO2/CrowdNav convention)."""
     offset = goal - pos
-    dist = social_force.safe_norm(offset)
+    dist = safe_norm(offset)
     return jnp.where((dist > 1.0)[..., None], offset / dist[..., None], offset)
 
 

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from tgrf_jax.env.types import EnvParams, Humans, Robot
+from tgrf_jax.geometry import norm
 
 
 def _mix32(x):
@@ -42,7 +43,7 @@ def uniform(key, shape, minval=0.0, maxval=1.0):
 def sample_robot(key, params: EnvParams, tries: int) -> Robot:
     """Start and goal ~ U(-a, a)^2 each, at least `min_start_goal_dist` apart."""
     pts = uniform(key, (tries, 2, 2), minval=-params.arena_size, maxval=params.arena_size)
-    dist = jnp.sqrt(jnp.sum(jnp.square(pts[:, 0] - pts[:, 1]), axis=-1))
+    dist = norm(pts[:, 0] - pts[:, 1])
     start_goal = choose(pts.reshape(tries, 4), dist - params.min_start_goal_dist).reshape(2, 2)
     zero = jnp.zeros((), jnp.float32)
     return Robot(

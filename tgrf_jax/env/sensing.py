@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from tgrf_jax.geometry import norm
+
 from tgrf_jax.env.types import EnvParams, EnvState, Obs
 
 
 def edge_distances(robot_pos, human_pos, robot_radius, human_radius):
     """Edge-to-edge robot-human distances (N,)."""
-    return jnp.linalg.norm(human_pos - robot_pos, axis=-1) - robot_radius - human_radius
+    return norm(human_pos - robot_pos) - robot_radius - human_radius
 
 
 def visible_mask(state: EnvState, params: EnvParams):
@@ -27,7 +29,7 @@ def observe(state: EnvState, params: EnvParams, predictions, visible) -> Obs:
         features.append((predictions - robot.pos).reshape(rel.shape[0], -1))
     features = jnp.concatenate(features, axis=-1)
 
-    order = jnp.argsort(jnp.where(visible, jnp.linalg.norm(rel, axis=-1), jnp.inf))
+    order = jnp.argsort(jnp.where(visible, norm(rel), jnp.inf))
     mask = visible[order]
     robot_node = jnp.concatenate(
         [robot.pos, params.robot_radius[None], robot.goal, params.robot_v_max[None], robot.heading[None]]

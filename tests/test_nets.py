@@ -1,0 +1,262 @@
+"""Policy networks: shapes, masking, parameter counts, recurrent resets, sequence form, gradients."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tgrf_jax.env.types import Obs
+from tgrf_jax.nets import NETWORK_NAMES, NETWORK_SIZES, count_params, make_network, masked_softmax
+from tgrf_jax.nets.common import TorchGRUCell
+
+B, N = 3, 20
+RECURRENT = ("hh_attn", "dsrnn")
+
+
+def random_obs(key, batch_shape, num_humans, dim, num_visible=None):
+    """Random observation batch laid out like the env's: visible rows first, zeros in invisible rows."""
+    batch_shape = tuple(batch_shape)
+    k = jax.random.split(key, 5)
+    if num_visible is None:
+        num_visible = jax.random.randint(k[0], batch_shape, 0, num_humans + 1)
+    mask = jnp.arange(num_humans) < jnp.asarray(num_visible)[..., None]
+    mask = jnp.broadcast_to(mask, batch_shape + (num_humans,))
+    humans = jax.random.normal(k[1], batch_shape + (num_humans, dim)) * 3.0
+    humans = jnp.where(mask[..., None], humans, 0.0)
+    return Obs(
+        robot_node=jax.random.normal(k[2], batch_shape + (7,)) * 3.0,
+        robot_vel=jax.random.normal(k[3], batch_shape + (2,)),
+        humans=humans,
+        human_mask=mask,
+        human_vel=jnp.zeros(batch_shape + (num_humans, 2)),
+        human_radius=jnp.zeros(batch_shape + (num_humans,)),
+    )
+
+
+@functools.lru_cache(maxsize=None)
+def built(name, size, dim, num_humans=N):
+    net = make_network(name, size, obs_human_dim=dim, num_humans=num_humans)
+    # an "rbg" key compiles the random initialisers faster than threefry; `PRNGKey` keys are tested below
+    params = net.init(jax.random.key(0, impl="rbg"))
+
+    @jax.jit
+    def step(p, carry, obs, resets):  # -> (carry, mean, std, value)
+        carry, pi, value = net.apply(p, carry, obs, resets)
+        return carry, pi.mean(), pi.stddev(), value
+
+    return net, params, step
+
+
+def assert_tree_equal(a, b):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def all_finite(tree):
+    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
+
+
+# ------------------------------------------------------------------------------------------------------- building
+
+
+def test_make_network_rejects_unknown_names():
+    with pytest.raises(ValueError, match="hh_attn, dsrnn, mlp"):
+        make_network("transformer", "paper", 12, 20)
+    with pytest.raises(ValueError, match="paper, small"):
+        make_network("hh_attn", "huge", 12, 20)
+
+
+def n_params(name, size, dim, num_humans=N):
+    net = make_network(name, size, obs_human_dim=dim, num_humans=num_humans)
+    return count_params(jax.eval_shape(net.init, jax.random.PRNGKey(0)))
+
+
+def test_param_counts_match_reference():
+    hh = n_params("hh_attn", "paper", 12)
+    assert abs(hh - 2_502_535) / 2_502_535 < 0.01, hh  # SPEC §6.1 (2,502,021 + the reference's unused 514)
+    assert hh == 2_502_021
+    ds = n_params("dsrnn", "paper", 2)
+    assert abs(ds - 0.97e6) / 0.97e6 < 0.05, ds
+    assert ds == 957_021  # SPEC's ~0.97 M also counts 16,968 parameters of layers the reference never uses
+    for name in NETWORK_NAMES:
+        for dim in (2, 12):
+            assert n_params(name, "small", dim) < n_params(name, "paper", dim)
+    # the real initialisation (with a raw uint32 PRNGKey) has the same structure
+    net = make_network("mlp", "small", obs_human_dim=12, num_humans=N)
+    assert count_params(net.init(jax.random.PRNGKey(0))) == n_params("mlp", "small", 12)
+
+
+def test_wrong_obs_shape_raises():
+    net, params, _ = built("hh_attn", "small", 12)
+    obs = random_obs(jax.random.PRNGKey(0), (B,), N, 2)
+    with pytest.raises(ValueError, match="obs.humans"):
+        net.apply(params, net.initialize_carry(B), obs, jnp.zeros(B, bool))
+
+
+# --------------------------------------------------------------------------------------------------------- shapes
+
+
+@pytest.mark.parametrize("dim", [2, 12])
+@pytest.mark.parametrize("size", NETWORK_SIZES)
+@pytest.mark.parametrize("name", NETWORK_NAMES)
+def test_output_shapes(name, size, dim):
+    net, params, step = built(name, size, dim)
+    carry = net.initialize_carry(B)
+    obs = random_obs(jax.random.PRNGKey(1), (B,), N, dim)
+    new_carry, mean, std, value = step(params, carry, obs, jnp.zeros(B, bool))
+    assert jax.tree_util.tree_structure(new_carry) == jax.tree_util.tree_structure(carry)
+    for c, nc in zip(jax.tree_util.tree_leaves(carry), jax.tree_util.tree_leaves(new_carry)):
+        assert c.shape == nc.shape and c.shape[0] == B
+    assert mean.shape == (B, 2) and std.shape == (B, 2) and value.shape == (B,)
+    np.testing.assert_allclose(std, 1.0)  # log-std initialised to 0
+    assert all_finite((new_carry, mean, value))
+    _, pi, _ = net.apply(params, carry, obs, jnp.zeros(B, bool))
+    assert pi.sample(seed=jax.random.PRNGKey(0)).shape == (B, 2)
+    assert pi.log_prob(jnp.zeros((B, 2))).shape == (B,)
+
+
+@pytest.mark.parametrize("name", NETWORK_NAMES)
+def test_zero_humans(name):
+    net, params, step = built(name, "small", 12, num_humans=0)
+    obs = random_obs(jax.random.PRNGKey(2), (B,), 0, 12)
+    carry, mean, _, value = step(params, net.initialize_carry(B), obs, jnp.zeros(B, bool))
+    assert mean.shape == (B, 2) and value.shape == (B,)
+    assert all_finite((carry, mean, value))
+
+
+# -------------------------------------------------------------------------------------------------------- masking
+
+
+def test_masked_softmax():
+    s = jnp.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [5.0, -1e30, 0.0]])
+    m = jnp.array([[True, True, False], [False, False, False], [True, True, True]])
+    w = masked_softmax(s, m)
+    np.testing.assert_allclose(w[0], [1 / (1 + np.e), np.e / (1 + np.e), 0.0], rtol=1e-6)
+    np.testing.assert_array_equal(w[1], 0.0)
+    np.testing.assert_allclose(w[2].sum(), 1.0, rtol=1e-6)
+    g = jax.grad(lambda s: jnp.sum(masked_softmax(s, m) * jnp.arange(3.0)))(s)
+    assert all_finite(g)
+    assert masked_softmax(jnp.zeros((2, 0)), jnp.zeros((2, 0), bool)).shape == (2, 0)
+
+
+@pytest.mark.parametrize("size", NETWORK_SIZES)
+@pytest.mark.parametrize("name", NETWORK_NAMES)
+def test_all_humans_masked_is_finite(name, size):
+    net, params, step = built(name, size, 12)
+    obs = random_obs(jax.random.PRNGKey(3), (B,), N, 12, num_visible=jnp.zeros(B, int))
+    # even garbage in the invisible rows must not leak in
+    obs = obs.replace(humans=jax.random.normal(jax.random.PRNGKey(4), obs.humans.shape) * 100.0)
+    carry, mean, _, value = step(params, net.initialize_carry(B), obs, jnp.zeros(B, bool))
+    assert all_finite((carry, mean, value))
+    ref_obs = obs.replace(humans=jnp.zeros_like(obs.humans))
+    assert_tree_equal(step(params, net.initialize_carry(B), ref_obs, jnp.zeros(B, bool)), (carry, mean, _, value))
+
+
+@pytest.mark.parametrize("size", NETWORK_SIZES)
+@pytest.mark.parametrize("name", NETWORK_NAMES)
+def test_invisible_rows_do_not_influence(name, size):
+    net, params, step = built(name, size, 12)
+    num_visible = jnp.array([0, 5, 19])
+    keys = jax.random.split(jax.random.PRNGKey(5), 4)
+    carry_a = carry_b = net.initialize_carry(B)
+    for t in range(2):  # two steps, so recurrent state built from perturbed rows would show up
+        obs = random_obs(keys[2 * t], (B,), N, 12, num_visible=num_visible)
+        noise = jax.random.normal(keys[2 * t + 1], obs.humans.shape) * 50.0
+        perturbed = obs.replace(humans=jnp.where(obs.human_mask[..., None], obs.humans, noise))
+        out_a = step(params, carry_a, obs, jnp.zeros(B, bool))
+        out_b = step(params, carry_b, perturbed, jnp.zeros(B, bool))
+        assert_tree_equal(out_a, out_b)
+        carry_a, carry_b = out_a[0], out_b[0]
+    # and visible rows do matter
+    obs2 = obs.replace(humans=obs.humans.at[1, 0, :2].add(1.0))
+    out_c = step(params, carry_a, obs2, jnp.zeros(B, bool))
+    out_a = step(params, carry_a, obs, jnp.zeros(B, bool))
+    assert not np.allclose(out_a[1][1], out_c[1][1])
+    np.testing.assert_array_equal(out_a[1][0], out_c[1][0])  # other batch rows untouched
+
+
+def test_dsrnn_ignores_predictions():
+    net, params, step = built("dsrnn", "small", 12)
+    obs = random_obs(jax.random.PRNGKey(6), (B,), N, 12)
+    other = obs.replace(humans=obs.humans.at[..., 2:].set(7.0))
+    assert_tree_equal(step(params, net.initialize_carry(B), obs, jnp.zeros(B, bool)),
+                      step(params, net.initialize_carry(B), other, jnp.zeros(B, bool)))
+
+
+# -------------------------------------------------------------------------------------------------- recurrence
+
+
+def test_gru_cell_matches_torch_equations():
+    cell = TorchGRUCell(4)
+    x, h = jax.random.normal(jax.random.PRNGKey(7), (2, 3)), jax.random.normal(jax.random.PRNGKey(8), (2, 4))
+    p = cell.init(jax.random.PRNGKey(9), h, x)
+    rng = np.random.default_rng(0)
+    p = jax.tree_util.tree_map(lambda a: a + 0.1 * rng.standard_normal(a.shape).astype(np.float32), p)
+    q = {k: np.asarray(v, np.float64) for k, v in p["params"].items()}
+    wi, wh = np.split(q["w_i"], 3, 1), np.split(q["w_h"], 3, 1)
+    bi, bh = np.split(q["b_i"], 3), np.split(q["b_h"], 3)
+    sig = lambda a: 1 / (1 + np.exp(-a))  # noqa: E731
+    xn, hn = np.asarray(x, np.float64), np.asarray(h, np.float64)
+    r = sig(xn @ wi[0] + bi[0] + hn @ wh[0] + bh[0])
+    z = sig(xn @ wi[1] + bi[1] + hn @ wh[1] + bh[1])
+    n = np.tanh(xn @ wi[2] + bi[2] + r * (hn @ wh[2] + bh[2]))
+    np.testing.assert_allclose(cell.apply(p, h, x), (1 - z) * n + z * hn, rtol=1e-5, atol=1e-6)
+    assert count_params(p) == 3 * 4 * (3 + 4) + 6 * 4  # PyTorch nn.GRU(3, 4)
+
+
+@pytest.mark.parametrize("name", NETWORK_NAMES)
+def test_reset_restarts_the_carry(name):
+    net, params, step = built(name, "small", 12)
+    k0, k1 = jax.random.split(jax.random.PRNGKey(11))
+    obs0 = random_obs(k0, (B,), N, 12, num_visible=jnp.array([3, 10, 20]))
+    obs1 = random_obs(k1, (B,), N, 12, num_visible=jnp.array([4, 0, 20]))
+    fresh = net.initialize_carry(B)
+    carry1, *_ = step(params, fresh, obs0, jnp.zeros(B, bool))
+    with_reset = step(params, carry1, obs1, jnp.ones(B, bool))
+    from_fresh = step(params, fresh, obs1, jnp.zeros(B, bool))
+    assert_tree_equal(with_reset, from_fresh)
+    # partial reset only touches the reset rows
+    partial = step(params, carry1, obs1, jnp.array([True, False, False]))
+    np.testing.assert_array_equal(partial[1][0], from_fresh[1][0])
+    no_reset = step(params, carry1, obs1, jnp.zeros(B, bool))
+    if name in RECURRENT:
+        assert not np.allclose(no_reset[1], from_fresh[1])
+        assert not np.allclose(partial[1][1:], from_fresh[1][1:])
+    else:
+        assert_tree_equal(no_reset, from_fresh)
+
+
+@pytest.mark.parametrize("name", NETWORK_NAMES)
+def test_apply_sequence_equals_stepwise_and_has_finite_gradients(name):
+    net, params, step = built(name, "small", 12)
+    T = 5
+    obs_seq = random_obs(jax.random.PRNGKey(12), (T, B), N, 12)
+    # an all-invisible step and episode starts inside the sequence
+    obs_seq = obs_seq.replace(human_mask=obs_seq.human_mask.at[1].set(False), humans=obs_seq.humans.at[1].set(0.0))
+    resets = jax.random.bernoulli(jax.random.PRNGKey(13), 0.3, (T, B)).at[0].set(True).at[3, 1].set(True)
+    carry0 = jax.tree_util.tree_map(lambda c: c + 0.5, net.initialize_carry(B))  # non-trivial start state
+    actions = jax.random.normal(jax.random.PRNGKey(15), (T, B, 2))
+
+    def loss(p):  # PPO-like: log-prob of stored actions, value, entropy, all through the scanned sequence form
+        carry_T, pi, values = net.apply_sequence(p, carry0, obs_seq, resets)
+        assert pi.batch_shape == (T, B) and pi.event_shape == (2,)
+        loss = -pi.log_prob(actions).mean() + jnp.square(values).mean() - pi.entropy().mean()
+        return loss, (carry_T, pi.mean(), pi.stddev(), values)
+
+    grads, (carry_T, means, stds, values) = jax.jit(jax.grad(loss, has_aux=True))(params)
+    assert means.shape == (T, B, 2) and values.shape == (T, B)
+    assert all_finite(grads)
+    assert float(jnp.abs(grads["params"]["heads"]["log_std"]).sum()) > 0
+    assert sum(float(jnp.abs(g).sum()) for g in jax.tree_util.tree_leaves(grads)) > 0
+
+    carry = carry0
+    for t in range(T):
+        obs_t = jax.tree_util.tree_map(lambda x: x[t], obs_seq)
+        carry, mean, std, value = step(params, carry, obs_t, resets[t])
+        np.testing.assert_allclose(means[t], mean, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(stds[t], std, rtol=1e-6)
+        np.testing.assert_allclose(values[t], value, rtol=1e-5, atol=1e-6)
+    for a, b in zip(jax.tree_util.tree_leaves(carry_T), jax.tree_util.tree_leaves(carry)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)

@@ -1,0 +1,145 @@
+"""Common recurrent actor-critic interface over the three policy torsos, and `make_network`.
+
+Every policy is a linen module whose `__call__(carry, obs)` processes ONE time step of a batch and returns
+`(new_carry, (mean, log_std, value))`. `ActorCritic` wraps it with the PPO-facing API:
+
+    net = make_network("hh_attn", "paper", obs_human_dim=12, num_humans=20)
+    params = net.init(key)                                   # or net.init(key, obs)
+    carry = net.initialize_carry(B)
+    carry, pi, value = net.apply(params, carry, obs, resets)            # obs (B, ...), resets (B,) bool
+    carry_T, pi, values = net.apply_sequence(params, carry0, obs_seq, resets_seq)   # time-major (T, B, ...)
+
+`resets[b]` True zeroes row b of the carry *before* the step (the observation is the first of a new episode).
+`apply_sequence` is a `jax.lax.scan` of exactly the single-step function, so the two forms agree exactly and resets
+inside a sequence restart the recurrent state as during the rollout. `pi` is a `distrax.MultivariateNormalDiag`
+(batch shape (B,) or (T, B), event shape (action_dim,)) with a state-independent std exp(log_std).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import distrax
+from flax import linen as nn
+
+from tgrf_jax.env.types import Obs
+from tgrf_jax.nets.common import count_params, reset_carry
+from tgrf_jax.nets.dsrnn import DSRNN_SIZES, DSRNNNet
+from tgrf_jax.nets.hh_attn import HH_ATTN_SIZES, HHAttnNet
+from tgrf_jax.nets.mlp import MLP_SIZES, MLPNet
+
+NETWORK_NAMES = ("hh_attn", "dsrnn", "mlp")
+NETWORK_SIZES = ("paper", "small")
+
+
+def dummy_obs(batch_shape, num_humans: int, obs_human_dim: int) -> Obs:
+    """All-zeros observation batch (no human visible) with the given leading shape."""
+    batch_shape = tuple(batch_shape) if isinstance(batch_shape, (tuple, list)) else (int(batch_shape),)
+    z = lambda *s: jnp.zeros(batch_shape + s, jnp.float32)  # noqa: E731
+    return Obs(
+        robot_node=z(7),
+        robot_vel=z(2),
+        humans=z(num_humans, obs_human_dim),
+        human_mask=jnp.zeros(batch_shape + (num_humans,), bool),
+        human_vel=z(num_humans, 2),
+        human_radius=z(num_humans),
+    )
+
+
+class ActorCritic:
+    """A policy module plus the recurrent PPO interface. Stateless: parameters are passed explicitly."""
+
+    def __init__(self, name: str, size: str, module: nn.Module, obs_human_dim: int, num_humans: int, action_dim: int):
+        self.name = name
+        self.size = size
+        self.module = module
+        self.obs_human_dim = obs_human_dim
+        self.num_humans = num_humans
+        self.action_dim = action_dim
+
+    def __repr__(self):
+        return (
+            f"ActorCritic(name={self.name!r}, size={self.size!r}, obs_human_dim={self.obs_human_dim}, "
+            f"num_humans={self.num_humans}, action_dim={self.action_dim})"
+        )
+
+    # ------------------------------------------------------------------------------------------------ state
+
+    def dummy_obs(self, batch_size: int = 1) -> Obs:
+        return dummy_obs(batch_size, self.num_humans, self.obs_human_dim)
+
+    def initialize_carry(self, batch_size: int):
+        """Zero recurrent state for `batch_size` environments (a dict of arrays with leading axis B)."""
+        return self.module.initialize_carry(batch_size)
+
+    def init(self, key: jax.Array, obs: Obs | None = None):
+        """Parameters (batch-size independent). `obs`: an optional example batch (B, ...) to check shapes."""
+        if obs is None:
+            obs = self.dummy_obs(1)
+        self._check_obs(obs, batch_ndim=1)
+        batch = obs.robot_node.shape[0]
+        return self.module.init(key, self.initialize_carry(batch), obs)
+
+    def num_params(self, params) -> int:
+        return count_params(params)
+
+    # ---------------------------------------------------------------------------------------------- forward
+
+    def _check_obs(self, obs: Obs, batch_ndim: int):
+        hs = obs.humans.shape
+        if len(hs) != batch_ndim + 2 or hs[-1] != self.obs_human_dim or hs[-2] != self.num_humans:
+            raise ValueError(
+                f"{self}: expected obs.humans of shape {('...',) * batch_ndim + (self.num_humans, self.obs_human_dim)}"
+                f" with {batch_ndim} batch axes, got {hs}"
+            )
+
+    def _step(self, params, carry, obs: Obs, resets):
+        if resets is not None:
+            carry = reset_carry(carry, jnp.asarray(resets, bool))
+        return self.module.apply(params, carry, obs)
+
+    def _dist(self, mean, log_std):
+        return distrax.MultivariateNormalDiag(mean, jnp.broadcast_to(jnp.exp(log_std), mean.shape))
+
+    def apply(self, params, carry, obs: Obs, resets):
+        """One step. obs batched (B, ...), resets (B,) bool (or None). Returns (new_carry, pi, value (B,))."""
+        self._check_obs(obs, batch_ndim=1)
+        carry, (mean, log_std, value) = self._step(params, carry, obs, resets)
+        return carry, self._dist(mean, log_std), value
+
+    def apply_sequence(self, params, carry0, obs_seq: Obs, resets_seq):
+        """Time-major sequence: obs (T, B, ...), resets (T, B) bool. Returns (carry_T, pi [(T, B)], values (T, B))."""
+        self._check_obs(obs_seq, batch_ndim=2)
+
+        def body(carry, xs):
+            obs, resets = xs
+            carry, (mean, _, value) = self._step(params, carry, obs, resets)
+            return carry, (mean, value)
+
+        carry_T, (means, values) = jax.lax.scan(body, carry0, (obs_seq, jnp.asarray(resets_seq, bool)))
+        log_std = params["params"]["heads"]["log_std"]  # state-independent: the same at every step
+        return carry_T, self._dist(means, log_std), values
+
+
+def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, action_dim: int = 2) -> ActorCritic:
+    """Build a policy: name in ("hh_attn", "dsrnn", "mlp"), size in ("paper", "small").
+
+    obs_human_dim: D, features per human row (2 without predictions, 2 (K + 1) with K predicted positions).
+    num_humans: N, rows of obs.humans (N = 0 is allowed).
+    """
+    if name not in NETWORK_NAMES:
+        raise ValueError(f"unknown network {name!r}; valid names: {', '.join(NETWORK_NAMES)}")
+    if size not in NETWORK_SIZES:
+        raise ValueError(f"unknown network size {size!r}; valid sizes: {', '.join(NETWORK_SIZES)}")
+    if obs_human_dim < 2 or num_humans < 0 or action_dim < 1:
+        raise ValueError(
+            "need obs_human_dim >= 2, num_humans >= 0, action_dim >= 1; "
+            f"got {obs_human_dim}, {num_humans}, {action_dim}"
+        )
+    if name == "hh_attn":
+        module = HHAttnNet(HH_ATTN_SIZES[size], obs_human_dim=obs_human_dim, action_dim=action_dim)
+    elif name == "dsrnn":
+        module = DSRNNNet(DSRNN_SIZES[size], num_humans=num_humans, action_dim=action_dim)
+    else:
+        module = MLPNet(MLP_SIZES[size], action_dim=action_dim)
+    return ActorCritic(name, size, module, obs_human_dim, num_humans, action_dim)
