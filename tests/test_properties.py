@@ -95,18 +95,21 @@ def test_same_key_same_trajectory(seed, n_steps):
 def test_respawned_humans_are_valid(seed):
     key = jax.random.key(seed)
     obs, state = RESET(key, PARAMS)
-    # Put every human on its goal so that all of them respawn in the next step.
+    # Put every human on its goal: one arrival is served per step, lowest index first.
     state = state.replace(humans=state.humans.replace(goal=state.humans.pos))
-    obs, nxt, *_ = STEP_NO_RESET(key, state, jnp.zeros(2), PARAMS)
-    h = nxt.humans
-    r = np.linalg.norm(np.asarray(h.pos), axis=-1)
-    bound = float(PARAMS.circle_radius), float(PARAMS.spawn_noise) * np.sqrt(2)
-    assert np.all((r >= bound[0] - bound[1] - 1e-4) & (r <= bound[0] + bound[1] + 1e-4))
-    np.testing.assert_allclose(np.asarray(h.goal), -np.asarray(h.pos), atol=1e-6)
-    assert np.all(np.asarray(h.vel) == 0.0)
-    assert np.all((np.asarray(h.radius) >= 0.3) & (np.asarray(h.radius) <= 0.5))
-    assert np.all((np.asarray(h.v_pref) >= 0.5) & (np.asarray(h.v_pref) <= 1.5))
-    # Respawned humans keep clear of the robot (its position and goal).
-    for p in np.asarray(h.pos):
-        for q in (np.asarray(nxt.robot.pos), np.asarray(nxt.robot.goal)):
-            assert np.linalg.norm(p - q) > 0.3 + 0.3
+    n = state.humans.pos.shape[0]
+    goals_before = state.humans.goal
+    circle, spread = float(PARAMS.circle_radius), float(PARAMS.spawn_noise) * np.sqrt(2)
+    for i in range(n):
+        obs, state, *_ = STEP_NO_RESET(jax.random.fold_in(key, i), state, jnp.zeros(2), PARAMS)
+        h = jax.tree_util.tree_map(lambda x: np.asarray(x)[i], state.humans)
+        # Human i is fresh (heading for its antipode); the ones still waiting keep their old goals.
+        assert np.all(h.goal == -h.pos)
+        waiting = np.all(np.asarray(state.humans.goal) == np.asarray(goals_before), axis=-1)
+        assert waiting.tolist() == [j > i for j in range(n)]
+        assert circle - spread - 1e-4 <= np.linalg.norm(h.pos) <= circle + spread + 1e-4
+        np.testing.assert_array_equal(h.goal, -h.pos)
+        np.testing.assert_array_equal(h.vel, [0.0, 0.0])
+        assert 0.3 <= h.radius <= 0.5 and 0.5 <= h.v_pref <= 1.5
+        for q in (np.asarray(state.robot.pos), np.asarray(state.robot.goal)):
+            assert np.linalg.norm(h.pos - q) > 0.3 + 0.3

@@ -175,7 +175,7 @@ class CrowdNavEnv:
 
         step_count = state.step_count + 1
         if cfg.num_humans > 0:
-            humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.spawn_tries)
+            humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.goal_tries)
             humans = scenario.respawn_arrived(k_respawn, humans, robot, params, cfg.spawn_tries)
         next_state = EnvState(
             robot=robot, humans=humans, goal_dist_ref=state.goal_dist_ref, step_count=step_count

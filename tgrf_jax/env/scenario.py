@@ -75,25 +75,26 @@ def goal_candidates(key, params: EnvParams, v_pref, shape):
     return params.circle_radius * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1) + noise
 
 
-def _pair_dist(a, b):
-    """Distances between points a (..., T, 2) and b (..., M, 2) -> (..., T, M).
+def _pair_sq_dist(a, b):
+    """Squared distances between points a (..., T, 2) and b (..., M, 2) -> (..., T, M).
 
-    x and y are handled as separate arrays: a norm over a trailing axis of size 2 vectorises badly on CPU.
+    x and y are handled as separate arrays: a reduction over a trailing axis of size 2 vectorises badly on CPU.
     """
     dx = a[..., :, None, 0] - b[..., None, :, 0]
     dy = a[..., :, None, 1] - b[..., None, :, 1]
-    return jnp.sqrt(dx * dx + dy * dy)
+    return dx * dx + dy * dy
 
 
 def clearance(candidates, own_radius, others_pos, others_goal, others_radius, others_valid, gap):
-    """Smallest margin between candidate points (..., T, 2) and other agents' positions and goals.
+    """Smallest squared-distance margin between candidates (..., T, 2) and other agents' positions and goals.
 
     A candidate is acceptable where the margin is >= 0, i.e. it keeps r_self + r_other + gap from every other
-    agent's position and goal (the reference's spawn rule). `others_*` have shape (..., M, ...).
+    agent's position and goal (the reference's spawn rule); larger margins mean more room. `others_*` have
+    shape (..., M, ...). Squares avoid a square root per pair in this hot loop.
     """
     need = own_radius[..., None, None] + others_radius[..., None, :] + gap  # (..., 1, M)
-    dist = jnp.minimum(_pair_dist(candidates, others_pos), _pair_dist(candidates, others_goal))
-    margin = jnp.where(others_valid[..., None, :], dist - need, jnp.inf)
+    sq = jnp.minimum(_pair_sq_dist(candidates, others_pos), _pair_sq_dist(candidates, others_goal))
+    margin = jnp.where(others_valid[..., None, :], sq - need * need, jnp.inf)
     return jnp.min(margin, axis=-1, initial=jnp.inf)
 
 
@@ -159,16 +160,25 @@ def change_goals(key, humans: Humans, robot: Robot, params: EnvParams, step_coun
 
 
 def respawn_arrived(key, humans: Humans, robot: Robot, params: EnvParams, tries: int) -> Humans:
-    """Humans within their own radius of their goal are replaced by fresh circle-crossing humans."""
+    """A human within its own radius of its goal is replaced by a fresh circle-crossing human.
+
+    One arrival is served per step (the lowest index); another human arriving in the same step waits at its
+    goal until the next one. Serving one instead of all N cuts the rejection-sampling work N-fold, and
+    simultaneous arrivals are rare.
+    """
     n = humans.pos.shape[0]
     k_attr, k_cand = jax.random.split(key)
     offset = humans.pos - humans.goal
     arrived = jnp.square(offset[:, 0]) + jnp.square(offset[:, 1]) < jnp.square(humans.radius)
-    radius, v_pref = sample_attributes(k_attr, params, (n,))
-    candidates = circle_candidates(k_cand, params, (n, tries))
-    margin = clearance(candidates, radius, *_others_excluding_self(humans, robot, params), params.spawn_clearance)
-    pos = choose(candidates, margin)
-    fresh = Humans(pos=pos, vel=jnp.zeros_like(pos), goal=-pos, radius=radius, v_pref=v_pref)
-    return jax.tree_util.tree_map(
-        lambda new, old: jnp.where(arrived.reshape((n,) + (1,) * (old.ndim - 1)), new, old), fresh, humans
+    who = jnp.argmax(arrived)
+    radius, v_pref = sample_attributes(k_attr, params)
+    candidates = circle_candidates(k_cand, params, (tries,))
+    pos, goal, radii, valid = _others_excluding_self(humans, robot, params)
+    margin = clearance(candidates, radius, pos, goal, radii, valid[who], params.spawn_clearance)
+    new_pos = choose(candidates, margin)
+    replace = arrived & (jnp.arange(n) == who)
+    put = lambda new, old: jnp.where(replace.reshape((n,) + (1,) * (old.ndim - 1)), new, old)
+    return Humans(
+        pos=put(new_pos, humans.pos), vel=put(jnp.zeros(2), humans.vel), goal=put(-new_pos, humans.goal),
+        radius=put(radius, humans.radius), v_pref=put(v_pref, humans.v_pref),
     )

@@ -1,0 +1,132 @@
+"""Throughput of ``jax.jit(jax.vmap(tgrf_jax.orca.solve))`` against Python-RVO2's doStep on this machine.
+
+    PYTHONPATH=. python benchmarks/orca_throughput.py [--quick] [--out results.json]
+
+Scenes are environment-like: N agents uniformly in a square whose area grows with N (about 3.2 m^2 per
+agent, i.e. a 8 m square for 20), radii U(0.3, 0.5) + 0.16, max speeds U(0.5, 1.5), random current velocities
+and goals; ORCA settings as in the environment (time horizon 5 s, dt 0.25 s, neighbour distance 10 m, all
+other agents as neighbours).  Timings: compile (first call) separately, then the median of several
+``block_until_ready`` runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import rvo2
+
+from tgrf_jax import orca
+
+SETTINGS = dict(time_horizon=5.0, dt=0.25, neighbor_dist=10.0)
+
+
+def random_scenes(n_scenes: int, n_agents: int, seed: int = 0) -> dict:
+    """Batch of environment-like scenes as float32 numpy arrays (leading axis: scene)."""
+    rng = np.random.default_rng(seed)
+    side = 8.0 * np.sqrt(n_agents / 20.0)
+    shape = (n_scenes, n_agents)
+    pos = rng.uniform(-side / 2, side / 2, shape + (2,))
+    goal = rng.uniform(-side / 2 - 2, side / 2 + 2, shape + (2,))
+    max_speed = rng.uniform(0.5, 1.5, shape)
+    ang = rng.uniform(0, 2 * np.pi, shape)
+    vel = np.stack([np.cos(ang), np.sin(ang)], -1) * (rng.uniform(0, 1, shape) * max_speed)[..., None]
+    d = goal - pos
+    pref = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1.0)
+    f = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    return dict(pos=f(pos), vel=f(vel), radius=f(rng.uniform(0.3, 0.5, shape) + 0.16), pref=f(pref),
+                max_speed=f(max_speed))
+
+
+def rvo2_dostep_rate(n_agents: int, n_steps: int, seed: int = 0) -> float:
+    """Python-RVO2 doSteps per second for one simulator of ``n_agents`` (the on-machine reference).
+
+    Each step sets every agent's position, velocity and preferred velocity (from a pool of random scenes, so
+    the kd-tree and LPs see fresh states) and calls doStep; the setter calls are included in the time, as an
+    environment driving RVO2 from Python would pay them.
+    """
+    pool = random_scenes(16, n_agents, seed)
+    sim = rvo2.PyRVOSimulator(SETTINGS["dt"], SETTINGS["neighbor_dist"], max(n_agents - 1, 0),
+                              SETTINGS["time_horizon"], SETTINGS["time_horizon"], 0.3, 1.0)
+    for i in range(n_agents):
+        sim.addAgent((0.0, 0.0), SETTINGS["neighbor_dist"], max(n_agents - 1, 0), SETTINGS["time_horizon"],
+                     SETTINGS["time_horizon"], float(pool["radius"][0, i]), float(pool["max_speed"][0, i]),
+                     (0.0, 0.0))
+    states = [[(tuple(map(float, pool["pos"][s, i])), tuple(map(float, pool["vel"][s, i])),
+                tuple(map(float, pool["pref"][s, i]))) for i in range(n_agents)] for s in range(16)]
+    start = time.perf_counter()
+    for step in range(n_steps):
+        for i, (p, v, pr) in enumerate(states[step % 16]):
+            sim.setAgentPosition(i, p)
+            sim.setAgentVelocity(i, v)
+            sim.setAgentPrefVelocity(i, pr)
+        sim.doStep()
+    return n_steps / (time.perf_counter() - start)
+
+
+def time_jax(batch: int, n_agents: int, repeats: int, seed: int = 0) -> dict:
+    """Compile time and median run time of the batched solver on ``batch`` scenes of ``n_agents``."""
+    scenes = {k: jnp.asarray(v) for k, v in random_scenes(batch, n_agents, seed).items()}
+    fn = jax.jit(jax.vmap(lambda p, v, r, pr, m: orca.solve(p, v, r, pr, m, max_neighbors=n_agents - 1,
+                                                            **SETTINGS)))
+    args = (scenes["pos"], scenes["vel"], scenes["radius"], scenes["pref"], scenes["max_speed"])
+    t0 = time.perf_counter()
+    compiled = fn.lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(*args))  # warm-up (allocations)
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        runs.append(time.perf_counter() - t0)
+    med = statistics.median(runs)
+    return dict(batch=batch, n_agents=n_agents, compile_s=compile_s, median_s=med, min_s=min(runs),
+                scenes_per_s=batch / med, agent_steps_per_s=batch * n_agents / med, repeats=repeats)
+
+
+def machine_info() -> dict:
+    return dict(node=platform.node(), processor=platform.processor() or platform.machine(),
+                platform=platform.platform(), python=platform.python_version(), cpu_count=os.cpu_count(),
+                jax=jax.__version__, device=str(jax.devices()[0]), backend=jax.default_backend(),
+                xla_flags=os.environ.get("XLA_FLAGS", ""), load_avg=list(os.getloadavg()))
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats (< 1 minute)")
+    parser.add_argument("--out", help="write the results as JSON to this file")
+    args = parser.parse_args(argv)
+
+    if args.quick:
+        cases = [(b, 20) for b in (1, 16, 256)] + [(64, n) for n in (5, 10)]
+        repeats, rvo2_steps = 3, 300
+    else:
+        cases = [(b, 20) for b in (1, 16, 256, 1024, 4096)] + [(b, n) for n in (5, 10, 50) for b in (256, 1024)]
+        repeats, rvo2_steps = 5, 2000
+
+    results = dict(machine=machine_info(), settings=SETTINGS, jax=[], rvo2=[])
+    print(f"{'agents':>6} {'batch':>6} {'compile s':>10} {'median ms':>10} {'scenes/s':>12} {'agent-steps/s':>14}")
+    for batch, n in cases:
+        r = time_jax(batch, n, repeats)
+        results["jax"].append(r)
+        print(f"{n:>6} {batch:>6} {r['compile_s']:>10.1f} {1e3 * r['median_s']:>10.2f} {r['scenes_per_s']:>12.0f} "
+              f"{r['agent_steps_per_s']:>14.0f}", flush=True)
+    for n in sorted({n for _, n in cases}):
+        rate = rvo2_dostep_rate(n, rvo2_steps)
+        results["rvo2"].append(dict(n_agents=n, dostep_per_s=rate, agent_steps_per_s=rate * n))
+        print(f"RVO2 doStep, {n:>3} agents: {rate:>10.0f} steps/s ({rate * n:.0f} agent-steps/s), one core")
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump(results, fh, indent=2)
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,475 @@
+"""ORCA (optimal reciprocal collision avoidance) for all agents at once, with RVO2 semantics.
+
+This reproduces one call of ``RVO::Agent::computeNewVelocity`` for every agent of a scene (agents only, no
+obstacles): the ``max_neighbors`` nearest other agents within ``neighbor_dist`` give one ORCA half-plane each,
+in ascending distance order; ``linearProgram2`` picks the velocity closest to the preferred one inside all
+half-planes and the max-speed disk, and where that 2-D LP is infeasible ``linearProgram3`` minimises the
+largest penetration, exactly as RVO2 does (same epsilon, same incremental order, same fallbacks).
+
+How it is vectorised (RVO2's algorithm is sequential and branchy):
+
+* Every agent gets one ORCA line towards every other agent (agent-index order) plus the line's ``rank`` in
+  RVO2's distance-sorted neighbour list; lines outside the ``max_neighbors`` nearest / ``neighbor_dist`` are
+  inactive.  The LPs follow ``rank``, so the lines are never sorted (sorts and top_k are slow on XLA:CPU).
+* ``linearProgram2`` is driven by events: RVO2 only does O(lines) work at lines that the running result
+  violates (about two per agent in crowds), so each "round" moves every agent to its next violated line
+  and solves ``linearProgram1`` there (a masked scan over the earlier-ranked lines).  The first round runs on
+  all agents; later rounds only on the agents still walking, gathered into fixed-size chunks.
+* ``linearProgram3`` likewise runs only for the agents whose LP2 failed, one round per line it re-solves
+  (about 1.7 per failing agent); each such round is a direction-mode LP2 over the projected lines, run
+  as dense rounds on its chunk.
+* The chunking and "skip what has nothing to do" logic uses real ``lax.cond``s inside ``fori_loop``s
+  (bounded: at most lines + 1 rounds).  Under ``vmap`` a cond would become a select and every agent would
+  pay for the worst one, so :func:`solve` carries a ``jax.custom_batching.custom_vmap`` rule: ``jax.vmap``
+  (nested too) hands the whole batch to one kernel, where the conditionals stay conditionals and the
+  chunks draw from all scenes.
+
+Every division and square root is guarded, so no NaN/inf appears even for coincident agents (where RVO2
+itself divides 0 by 0), zero velocities or agents without neighbours.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+__all__ = ["RVO_EPSILON", "solve", "solve_with_info"]
+
+RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshold in the LPs.
+_BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
+_CHUNK = 2048  # problems per worklist chunk (see _worklist)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# small helpers (RVO2's Vector2 algebra on split x/y arrays)
+
+
+def _det(ax, ay, bx, by):
+    """RVO2 det(a, b) = a.x * b.y - a.y * b.x (cross product z)."""
+    return ax * by - ay * bx
+
+
+def _safe_inv(x):
+    """1/x, with 1 where x == 0 (the caller masks those lanes out)."""
+    return 1.0 / jnp.where(x == 0.0, 1.0, x)
+
+
+def _safe_sqrt(x):
+    """sqrt clamped at 0, with a gradient that stays finite at 0."""
+    pos = x > 0.0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# ORCA half-planes
+
+
+def _orca_lines(rpx, rpy, rvx, rvy, crad, vx, vy, inv_th, inv_dt, tie_sign):
+    """One ORCA line per (agent, neighbour) pair, as in Agent::computeNewVelocity.
+
+    rp = other.position - position, rv = velocity - other.velocity, crad = combined radius, v = own velocity.
+    ``tie_sign`` (+1/-1, antisymmetric in the pair) picks an escape direction where RVO2 would produce NaN
+    (coincident agents whose relative velocity is exactly zero in the collision case).
+    Returns (point_x, point_y, dir_x, dir_y).
+    """
+    dist_sq = rpx * rpx + rpy * rpy
+    crad_sq = crad * crad
+
+    # -- no collision: velocity obstacle truncated at time_horizon (cut-off circle + two legs)
+    wx = rvx - inv_th * rpx
+    wy = rvy - inv_th * rpy
+    w_len_sq = wx * wx + wy * wy
+    dot1 = wx * rpx + wy * rpy
+    on_circle = (dot1 < 0.0) & (dot1 * dot1 > crad_sq * w_len_sq)
+    w_len = _safe_sqrt(w_len_sq)
+    inv_w = _safe_inv(w_len)  # RVO2 divides a Vector2 by s as multiplication with 1/s
+    uwx, uwy = wx * inv_w, wy * inv_w
+    circ_dx, circ_dy = uwy, -uwx
+    circ_s = crad * inv_th - w_len
+    circ_ux, circ_uy = circ_s * uwx, circ_s * uwy
+
+    leg = _safe_sqrt(dist_sq - crad_sq)
+    inv_d2 = _safe_inv(dist_sq)
+    left = _det(rpx, rpy, wx, wy) > 0.0
+    leg_dx = jnp.where(left, (rpx * leg - rpy * crad) * inv_d2, -((rpx * leg + rpy * crad) * inv_d2))
+    leg_dy = jnp.where(left, (rpx * crad + rpy * leg) * inv_d2, -((-rpx * crad + rpy * leg) * inv_d2))
+    dot2 = rvx * leg_dx + rvy * leg_dy
+    leg_ux, leg_uy = dot2 * leg_dx - rvx, dot2 * leg_dy - rvy
+
+    # -- collision: project on the cut-off circle of time step dt
+    cwx = rvx - inv_dt * rpx
+    cwy = rvy - inv_dt * rpy
+    cw_len = _safe_sqrt(cwx * cwx + cwy * cwy)
+    degenerate = cw_len == 0.0
+    inv_cw = _safe_inv(cw_len)
+    cuwx = jnp.where(degenerate, tie_sign, cwx * inv_cw)
+    cuwy = jnp.where(degenerate, 0.0, cwy * inv_cw)
+    col_dx, col_dy = cuwy, -cuwx
+    col_s = crad * inv_dt - cw_len
+    col_ux, col_uy = col_s * cuwx, col_s * cuwy
+
+    collide = dist_sq <= crad_sq
+    dx = jnp.where(collide, col_dx, jnp.where(on_circle, circ_dx, leg_dx))
+    dy = jnp.where(collide, col_dy, jnp.where(on_circle, circ_dy, leg_dy))
+    ux = jnp.where(collide, col_ux, jnp.where(on_circle, circ_ux, leg_ux))
+    uy = jnp.where(collide, col_uy, jnp.where(on_circle, circ_uy, leg_uy))
+    return vx + 0.5 * ux, vy + 0.5 * uy, dx, dy
+
+
+def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
+    """ORCA lines of every agent towards every other agent, plus RVO2's neighbour order.
+
+    Inputs are (B, N); inv_th, inv_dt, range_sq are (B,).  Outputs are (B, N, N) with [s, a, b] = agent a's
+    line towards agent b: point/direction components, ``rank`` (b's position in a's distance-sorted
+    neighbour list, i.e. the line's index in RVO2's orcaLines_) and ``active`` (b is one of a's
+    ``k`` nearest neighbours within range).  The lines stay in agent-index order; the LPs follow ``rank``, so
+    nothing is sorted.  Equal distances rank by agent index (RVO2: kd-tree visiting order).
+    """
+    n = px.shape[-1]
+    rpx = px[:, None, :] - px[:, :, None]  # other b minus self a
+    rpy = py[:, None, :] - py[:, :, None]
+    d2 = rpx * rpx + rpy * rpy
+    idx = jnp.arange(n)
+    not_self = idx[:, None] != idx[None, :]
+    valid = not_self & mask[:, None, :] & (d2 < range_sq[:, None, None])
+
+    # rank by counting the valid neighbours that are closer (ties: lower index first)
+    key = jnp.where(valid, d2, _BIG)
+    rank = jnp.zeros(key.shape, jnp.int32)
+    for c in range(n):
+        kc = key[..., c:c + 1]
+        rank = rank + ((kc < key) | ((kc == key) & (c < idx))).astype(jnp.int32)
+    active = valid & (rank < k)
+
+    tie_sign = jnp.where(idx[None, :] > idx[:, None], 1.0, -1.0)
+    lpx, lpy, ldx, ldy = _orca_lines(
+        rpx, rpy, vx[:, :, None] - vx[:, None, :], vy[:, :, None] - vy[:, None, :],
+        rad[:, :, None] + rad[:, None, :], vx[:, :, None], vy[:, :, None],
+        inv_th[:, None, None], inv_dt[:, None, None], tie_sign)
+    return lpx, lpy, ldx, ldy, rank, active
+
+
+# ---------------------------------------------------------------------------------------------------------
+# linear programs, event driven
+#
+# Arrays are (P, L): P independent problems (agents), L line slots in arbitrary order; ``rank`` (P, L) gives
+# each line's position in RVO2's sequence and ``valid`` marks the lines that exist.  RVO2 walks the lines in
+# order and does O(L) work only at lines that the running result violates (about 2 per agent in crowds), so
+# instead of a dense O(L^2) precompute every "round" jumps each problem to its next violated line.
+
+
+def _pick(x, b):
+    """x[p, b[p]] (a gather: also a fusion boundary, so the scan that produced b is not recomputed)."""
+    return jnp.take_along_axis(x, b[:, None], axis=-1, mode="clip")[:, 0]
+
+
+def _first_line(hit, rank, n_slots):
+    """Slot and rank of the lowest-ranked line where hit (P, L) holds; rank == n_slots if none.
+
+    One min-reduction over a packed (rank, slot) key: XLA:CPU materialises a reduction's result instead of
+    re-evaluating the whole scan inside every consumer, as it does with a select chain.
+    """
+    n = rank.shape[-1]
+    key = jnp.min(jnp.where(hit, rank * n + jnp.arange(n, dtype=jnp.int32), n_slots * n), axis=-1)
+    return key % n, key // n
+
+
+def _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt):
+    """linearProgram1 on line i (arrays (P,)) constrained by the lines where prev (P, L) holds.
+
+    The running bounds are kept as fractions num/den with den > 0, compared by cross-multiplication, so the
+    per-line chain has no division (XLA:CPU would materialise every division instead of fusing the chain);
+    RVO2's min/max of rounded quotients picks the same line up to rounding ties.
+    Returns the candidate result and ``ok`` (False where RVO2's linearProgram1 returns false).
+    """
+    px, py, dx, dy = lines
+    dot = pix * dix + piy * diy
+    disc = dot * dot + radius * radius - (pix * pix + piy * piy)
+    sq = _safe_sqrt(disc)
+    n_left, n_right = -dot - sq, -dot + sq
+    d_left = d_right = jnp.ones_like(dot)
+    bad = disc < 0.0
+    for j in range(px.shape[-1]):
+        den = _det(dix, diy, dx[:, j], dy[:, j])
+        num = _det(dx[:, j], dy[:, j], pix - px[:, j], piy - py[:, j])
+        parallel = jnp.abs(den) <= RVO_EPSILON
+        use = prev[:, j] & ~parallel
+        bad = bad | (prev[:, j] & parallel & (num < 0.0))
+        right = use & (den >= 0.0) & (num * d_right < n_right * den)  # num/den < tRight
+        n_right = jnp.where(right, num, n_right)
+        d_right = jnp.where(right, den, d_right)
+        left = use & (den < 0.0) & (num * d_left < n_left * den)  # num/den > tLeft (den < 0)
+        n_left = jnp.where(left, -num, n_left)
+        d_left = jnp.where(left, -den, d_left)
+    t_left = n_left / d_left
+    t_right = n_right / d_right
+    ok = ~bad & (t_left <= t_right)
+    if direction_opt:
+        t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
+    else:
+        t = dix * (optx - pix) + diy * (opty - piy)
+        t = jnp.where(t < t_left, t_left, jnp.where(t > t_right, t_right, t))
+    return pix + t * dix, piy + t * diy, ok
+
+
+def _lp2_start(radius, optx, opty, direction_opt):
+    """linearProgram2's initial result."""
+    if direction_opt:  # optVelocity is a unit direction
+        return optx * radius, opty * radius
+    # RVO2: normalize(optVelocity) * radius, i.e. (opt * (1 / |opt|)) * radius, if outside the disk
+    opt_sq = optx * optx + opty * opty
+    clamp = opt_sq > radius * radius
+    inv = _safe_inv(_safe_sqrt(opt_sq))
+    return jnp.where(clamp, (optx * inv) * radius, optx), jnp.where(clamp, (opty * inv) * radius, opty)
+
+
+def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
+    """One step of linearProgram2 for every problem: go to the next violated line, solve LP1 on it.
+
+    state = (rx, ry, cursor, fail_at): cursor is the rank to continue from (n_slots: finished), fail_at the
+    rank of the line where LP1 failed (n_slots: none).  On failure the result stays, as in RVO2.
+    """
+    px, py, dx, dy = lines
+    rx, ry, cursor, fail_at = state
+    n_slots = px.shape[-1]
+    b, i_rank = _first_line(
+        valid & (rank >= cursor[:, None]) & (_det(dx, dy, px - rx[:, None], py - ry[:, None]) > 0.0), rank,
+        n_slots)
+    found = i_rank < n_slots
+    pix, piy, dix, diy = (_pick(x, b) for x in lines)
+    prev = valid & (rank < i_rank[:, None])
+    cx, cy, ok = _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt)
+    take = found & ok
+    rx = jnp.where(take, cx, rx)
+    ry = jnp.where(take, cy, ry)
+    fail_at = jnp.where(found & ~ok, i_rank, fail_at)
+    cursor = jnp.where(take, i_rank + 1, n_slots)
+    return rx, ry, cursor, fail_at
+
+
+def _lp2_dense(lines, rank, valid, radius, optx, opty, direction_opt):
+    """Complete linearProgram2 for a (small) set of problems: rounds until none is pending.
+
+    At most n_slots + 1 rounds are needed (each advances past a line); rounds after the last pending
+    problem finishes are skipped by a real conditional (this is never traced under vmap).
+    """
+    n_slots = lines[0].shape[-1]
+    rx, ry = _lp2_start(radius, optx, opty, direction_opt)
+    start = jnp.zeros(rx.shape, jnp.int32)
+    state = (rx, ry, start, start + n_slots)
+
+    def body(_, state):
+        return lax.cond(jnp.any(state[2] < n_slots),
+                        lambda s: _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, s),
+                        lambda s: s, state)
+
+    return lax.fori_loop(0, n_slots + 1, body, state)
+
+
+def _lp3_round(lines, rank, valid, radius, state):
+    """One step of linearProgram3: go to the next line penetrated deeper than the current worst, and
+    minimise its penetration subject to the earlier lines not exceeding it (direction-mode LP2 on the
+    projected lines).  state = (rx, ry, distance, cursor)."""
+    px, py, dx, dy = lines
+    rx, ry, distance, cursor = state
+    n_slots = px.shape[-1]
+    b, i_rank = _first_line(
+        valid & (rank >= cursor[:, None])
+        & (_det(dx, dy, px - rx[:, None], py - ry[:, None]) > distance[:, None]), rank, n_slots)
+    found = i_rank < n_slots
+    pix, piy, dix, diy = (p[:, None] for p in (_pick(x, b) for x in lines))
+
+    # projected lines: where line j's penetration equals line i's
+    determinant = _det(dix, diy, dx, dy)
+    parallel = jnp.abs(determinant) <= RVO_EPSILON
+    same_dir = parallel & (dix * dx + diy * dy > 0.0)
+    s = _det(dx, dy, pix - px, piy - py) / jnp.where(parallel, 1.0, determinant)
+    qpx = jnp.where(parallel, 0.5 * (pix + px), pix + s * dix)
+    qpy = jnp.where(parallel, 0.5 * (piy + py), piy + s * diy)
+    ddx, ddy = dx - dix, dy - diy
+    inv_len = _safe_inv(_safe_sqrt(ddx * ddx + ddy * ddy))  # RVO2 normalize(): v * (1 / abs(v))
+    qvalid = valid & (rank < i_rank[:, None]) & ~same_dir
+    nx, ny = -diy[:, 0], dix[:, 0]  # optimise towards line i's valid side
+    sx, sy, _, lp2_fail = _lp2_dense((qpx, qpy, ddx * inv_len, ddy * inv_len), rank, qvalid, radius, nx, ny,
+                                     direction_opt=True)
+    take = found & (lp2_fail == n_slots)  # a failed inner LP2 (rounding) keeps the result, as in RVO2
+    rx = jnp.where(take, sx, rx)
+    ry = jnp.where(take, sy, ry)
+    distance = jnp.where(found, _det(dix[:, 0], diy[:, 0], pix[:, 0] - rx, piy[:, 0] - ry), distance)
+    cursor = jnp.where(found, i_rank + 1, n_slots)
+    return rx, ry, distance, cursor
+
+
+def _worklist(step, tables, state, pending, n_rounds, chunk):
+    """Run ``step`` rounds on the pending problems only, gathered into fixed-size chunks.
+
+    tables/state: tuples of (P, ...) arrays (tables are read-only); step(tables_rows, state_rows) returns the
+    new state rows and their pending flags.  Each round compacts the pending problems; chunks past their count
+    and rounds with nothing pending are skipped by real conditionals, so the cost follows the actual work.
+    Only ever traced outside vmap (the custom_vmap rule hands it the whole batch).
+    """
+    n_prob = pending.shape[0]
+    chunk = max(1, min(chunk, n_prob))
+    n_chunks = -(-n_prob // chunk)
+
+    def run_round(carry):
+        state, pending = carry
+        count = jnp.sum(pending, dtype=jnp.int32)
+        order = jnp.nonzero(pending, size=n_chunks * chunk, fill_value=n_prob)[0].astype(jnp.int32)
+
+        def run_chunk(c, carry):
+            state, pending = carry
+            sel = lax.dynamic_slice(order, (c * chunk,), (chunk,))
+            rows = jnp.minimum(sel, n_prob - 1)
+            new, pend = step(tuple(t[rows] for t in tables), tuple(x[rows] for x in state))
+            state = tuple(x.at[sel].set(v, mode="drop") for x, v in zip(state, new))  # padding is dropped
+            return state, pending.at[sel].set(pend, mode="drop")
+
+        def chunk_body(c, carry):
+            return lax.cond(c * chunk < count, lambda cr: run_chunk(c, cr), lambda cr: cr, carry)
+
+        return lax.fori_loop(0, n_chunks, chunk_body, (state, pending))
+
+    def round_body(_, carry):
+        return lax.cond(jnp.any(carry[1]), run_round, lambda cr: cr, carry)
+
+    return lax.fori_loop(0, n_rounds, round_body, (state, pending))[0]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the batched kernel
+
+
+def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_dist, *, k):
+    """Batched core: pos/vel/pref (B, N, 2), rad/vmax/mask (B, N), scalars (B,).  Returns (B, N, 2) and the
+    per-agent LP2 failure flag (B, N)."""
+    b, n = rad.shape
+    f32 = jnp.float32
+    pos, vel, pref = pos.astype(f32), vel.astype(f32), pref.astype(f32)
+    a = b * n
+    radius = vmax.astype(f32).reshape(a)
+    ox, oy = pref[..., 0].reshape(a), pref[..., 1].reshape(a)
+    if k == 0:
+        rx, ry = _lp2_start(radius, ox, oy, direction_opt=False)
+        return jnp.stack([rx, ry], -1).reshape(b, n, 2), jnp.zeros((b, n), bool)
+
+    inv_th = 1.0 / time_horizon.astype(f32)  # RVO2: invTimeHorizon = 1.0f / timeHorizon_
+    inv_dt = 1.0 / dt.astype(f32)
+    nd = neighbor_dist.astype(f32)
+    out = _neighbour_lines(pos[..., 0], pos[..., 1], vel[..., 0], vel[..., 1], rad.astype(f32),
+                           mask.astype(bool), inv_th, inv_dt, nd * nd, k)
+    lines = tuple(x.reshape(a, n) for x in out[:4])
+    rank, active = out[4].reshape(a, n), out[5].reshape(a, n)
+
+    # linearProgram2: the first round runs densely on all agents, later ones only on those still walking
+    rx, ry = _lp2_start(radius, ox, oy, direction_opt=False)
+    zero = jnp.zeros((a,), jnp.int32)
+    state = _lp2_round(lines, rank, active, radius, ox, oy, False, (rx, ry, zero, zero + n))
+
+    def lp2_step(t, s):
+        new = _lp2_round(t[:4], t[4], t[5], t[6], t[7], t[8], False, s)
+        return new, new[2] < n
+
+    tables = lines + (rank, active, radius, ox, oy)
+    rx, ry, _, fail_at = _worklist(lp2_step, tables, state, state[2] < n, n, _CHUNK)
+
+    # linearProgram3 from the failing line, only for the agents whose LP2 failed
+    failed = fail_at < n
+
+    def lp3_step(t, s):
+        new = _lp3_round(t[:4], t[4], t[5], t[6], s)
+        return new, new[3] < n
+
+    rx, ry, _, _ = _worklist(lp3_step, tables[:7], (rx, ry, jnp.zeros_like(rx), fail_at), failed, n + 1,
+                             _CHUNK)
+    return jnp.stack([rx, ry], -1).reshape(b, n, 2), failed.reshape(b, n)
+
+
+@functools.lru_cache(maxsize=None)
+def _kernels(k: int):
+    """custom_vmap wrappers for a given (static) neighbour count.
+
+    ``scene`` solves one scene; its vmap rule calls ``batch`` on the whole batch; ``batch``'s own vmap rule
+    folds any further vmap axis into its batch axis, so nested vmaps also end in one flat kernel.
+    """
+
+    def core(*args):
+        return _solve_scenes(*args, k=k)
+
+    @jax.custom_batching.custom_vmap
+    def batch(*args):
+        return core(*args)
+
+    @batch.def_vmap
+    def _batch_rule(axis_size, in_batched, *args):
+        args = [x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, bt in zip(args, in_batched)]
+        inner = args[0].shape[1]
+        out, failed = batch(*(x.reshape((axis_size * inner,) + x.shape[2:]) for x in args))
+        return (out.reshape((axis_size, inner) + out.shape[1:]),
+                failed.reshape((axis_size, inner) + failed.shape[1:])), (True, True)
+
+    @jax.custom_batching.custom_vmap
+    def scene(*args):
+        out, failed = core(*(x[None] for x in args))
+        return out[0], failed[0]
+
+    @scene.def_vmap
+    def _scene_rule(axis_size, in_batched, *args):
+        args = [x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, bt in zip(args, in_batched)]
+        return batch(*args), (True, True)
+
+    return scene
+
+
+@functools.partial(jax.jit, static_argnames=("max_neighbors",))
+def solve_with_info(positions, velocities, radii, pref_velocities, max_speeds, *, time_horizon, dt,
+                    neighbor_dist, max_neighbors, neighbor_mask=None):
+    """Like :func:`solve`, and also returns a (N,) bool: True where RVO2's linearProgram2 failed (the 2-D LP
+    was infeasible) and linearProgram3 produced the velocity.  (jitted: eager calls compile once per shape.)"""
+    positions = jnp.asarray(positions, jnp.float32)
+    n = positions.shape[0]
+    if n == 0:
+        return jnp.zeros((0, 2), jnp.float32), jnp.zeros((0,), bool)
+    k = max(0, min(int(max_neighbors), n - 1))
+    mask = jnp.ones((n,), bool) if neighbor_mask is None else jnp.asarray(neighbor_mask, bool)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return _kernels(k)(positions, f32(velocities), f32(radii), f32(pref_velocities), f32(max_speeds), mask,
+                       f32(time_horizon), f32(dt), f32(neighbor_dist))
+
+
+def solve(positions, velocities, radii, pref_velocities, max_speeds, *, time_horizon, dt, neighbor_dist,
+          max_neighbors, neighbor_mask=None):
+    """New velocities of all agents of one scene after one ORCA step, as RVO2's ``doStep`` sets them.
+
+    Equivalent to an ``RVO::RVOSimulator`` holding these agents (no obstacles) calling
+    ``Agent::computeNewVelocity`` for each; the position update is left to the caller.  Jittable and
+    vmappable (``jax.vmap(solve)`` runs one batched kernel, see the module docstring).  float32 throughout.
+
+    Args:
+      positions: (N, 2) agent centres (RVO2 ``position_``).
+      velocities: (N, 2) current velocities (``velocity_``): the ORCA lines are built around them and
+        reciprocity assumes the neighbours keep theirs.
+      radii: (N,) agent radii (``radius_``); a pair collides when the centre distance is <= the sum.
+      pref_velocities: (N, 2) preferred velocities (``prefVelocity_``), the LP's target.
+      max_speeds: (N,) speed limits (``maxSpeed_``), the radius of the velocity disk of the LPs.
+      time_horizon: ``timeHorizon_``: velocities are safe with respect to other agents for this long.
+        Python float or traced scalar.
+      dt: simulation time step (``timeStep_``), used only for already-colliding pairs, which are pushed
+        apart within one step.  Python float or traced scalar.
+      neighbor_dist: ``neighborDist_``: only agents whose centre distance is strictly below it are neighbours.
+        Python float or traced scalar.
+      max_neighbors: ``maxNeighbors_``: at most this many nearest neighbours are considered (static int,
+        clamped to N-1).
+      neighbor_mask: optional (N,) bool; agents where it is False are nobody's neighbour (hidden agents).
+        Their own result is still computed (finite) and is meaningless to RVO2-equivalence only if they
+        should not exist at all.
+
+    Returns:
+      (N, 2) float32 new velocities (``newVelocity_``), each within its agent's max speed (up to rounding).
+    """
+    return solve_with_info(positions, velocities, radii, pref_velocities, max_speeds, time_horizon=time_horizon,
+                           dt=dt, neighbor_dist=neighbor_dist, max_neighbors=max_neighbors,
+                           neighbor_mask=neighbor_mask)[0]
