@@ -264,7 +264,8 @@ class EnvConfig:
     track_future_intrusion: bool = spec(
         False, doc="compute itr_future (ground-truth human rollout every step; evaluation turns it on)"
     )
-    spawn_tries: int = spec(16, low=1, high=1024, doc="rejection-sampling candidates per spawn")
+    spawn_tries: int = spec(16, low=1, high=1024, doc="rejection-sampling candidates per spawn or respawn")
+    goal_tries: int = spec(4, low=1, high=1024, doc="rejection-sampling candidates per goal change")
     orca_max_neighbors: int = spec(-1, low=-1, high=MAX_HUMANS, doc="-1: all other humans")
 
     # --- numeric (traced) --------------------------------------------------------------------------
