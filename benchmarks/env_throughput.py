@@ -50,6 +50,28 @@ def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int
     }
 
 
+def breakdown(policy: str, num_humans: int, batch: int, repeats: int) -> dict:
+    """Milliseconds per batched call of the pieces of one auto-reset step."""
+    from tgrf_jax.env import humans as humans_lib
+
+    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": "const_vel"})
+    params = env.default_params
+    keys = jax.random.split(jax.random.key(0), batch)
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    actions = jax.vmap(StraightPolicy.action)(obs)
+    pieces = {
+        "human_policy": (lambda s: humans_lib.human_velocities(s.humans, None, params, env.config), (state,)),
+        "reset": (lambda k: env.reset(k, params), (keys,)),
+        "step_without_reset": (lambda k, s, a: env.step_env(k, s, a, params), (keys, state, actions)),
+        "step_with_auto_reset": (lambda k, s, a: env.step(k, s, a, params), (keys, state, actions)),
+    }
+    out = {}
+    for name, (fn, args) in pieces.items():
+        _, run_s = time_call(jax.jit(jax.vmap(fn)), *args, repeats=repeats)
+        out[name] = round(run_s * 1e3, 3)
+    return out
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="20 humans, a few batch sizes (< 1 minute)")
@@ -80,8 +102,11 @@ def main(argv=None):
     best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20), key=lambda r: r["env_steps_per_s"])
     print(f"best ORCA-20 env: {best['env_steps_per_s']:,.0f} env-steps/s at batch {best['batch']} "
           f"= {best['env_steps_per_s'] / rvo2:.1f}x RVO2's raw doStep")
+    parts = {p: breakdown(p, 20, 1024, repeats) for p in ("orca", "social_force")}
+    for p, ms in parts.items():
+        print(f"where the time goes, {p}, 20 humans, batch 1024 (ms per batched call): {ms}")
     write_json(args.out, {"benchmark": "env_throughput", "quick": args.quick, "machine": info,
-                          "rvo2_dostep_20_per_s": rvo2, "results": rows})
+                          "rvo2_dostep_20_per_s": rvo2, "results": rows, "breakdown_ms_batch1024": parts})
 
 
 if __name__ == "__main__":
