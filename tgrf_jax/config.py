@@ -345,3 +345,119 @@ class EnvConfig:
 
 def reward_config_from_dict(data: Mapping[str, Any] | None) -> RewardConfig:
     return from_dict(RewardConfig, data, "reward")
+
+
+# --------------------------------------------------------------------------------------------------
+# Training configuration (PPO, network, run)
+# --------------------------------------------------------------------------------------------------
+
+NETWORK_NAMES = ("hh_attn", "dsrnn", "mlp")
+NETWORK_SIZES = ("paper", "small")
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """PPO settings. Shape-affecting fields (envs, steps, epochs, minibatches, total steps, switches) are static;
+    the numeric ones (lr, coefficients, clip, gamma, lambda, grad norm) become the traced `HParams` pytree.
+
+    Defaults are the fast wall-clock configuration; `configs/paper_*.yaml` restores the reference (SPEC A.5).
+    """
+
+    # --- static
+    num_envs: int = spec(128, low=1, high=65536, doc="parallel environments")
+    num_steps: int = spec(30, low=1, high=10000, doc="rollout length per update (= sequence length)")
+    total_steps: int = spec(1_500_000, low=1, doc="environment steps of the whole run")
+    update_epochs: int = spec(2, low=1, high=1000, doc="reference: 5; 2 halves the learner time")
+    num_minibatches: int = spec(2, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
+    anneal_lr: bool = spec(False, doc="linear learning-rate decay to 0 over the run")
+    clip_value: bool = spec(True, doc="clip the value update like the policy ratio (reference: on)")
+    norm_adv: bool = spec(True, doc="normalise advantages over the whole rollout batch")
+    adam_eps: float = spec(1e-5, low=0.0, low_inclusive=False)
+    # --- numeric (traced hyper-parameters)
+    lr: float = spec(3e-4, low=0.0, low_inclusive=False, high=1.0)
+    gamma: float = spec(0.99, low=0.0, high=1.0)
+    gae_lambda: float = spec(0.95, low=0.0, high=1.0)
+    clip_eps: float = spec(0.2, low=0.0, low_inclusive=False, high=10.0)
+    vf_coef: float = spec(0.5, low=0.0)
+    ent_coef: float = spec(0.0, low=0.0)
+    max_grad_norm: float = spec(0.5, low=0.0, low_inclusive=False)
+
+    def __post_init__(self):
+        check_fields(self, "ppo")
+        if self.num_envs % self.num_minibatches:
+            raise ConfigError(
+                f"ppo.num_envs = {self.num_envs} must be divisible by ppo.num_minibatches = {self.num_minibatches} "
+                "(minibatches keep whole env sequences)"
+            )
+        if self.total_steps < self.batch_size:
+            raise ConfigError(
+                f"ppo.total_steps = {self.total_steps} is less than one update "
+                f"(ppo.num_envs x ppo.num_steps = {self.batch_size}); allowed: >= {self.batch_size}"
+            )
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def num_updates(self) -> int:
+        return self.total_steps // self.batch_size
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkConfig:
+    name: str = spec("hh_attn", choices=NETWORK_NAMES)
+    size: str = spec("small", choices=NETWORK_SIZES)
+
+    def __post_init__(self):
+        check_fields(self, "network")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Outer-loop settings: seed, logging / checkpoint cadence, final evaluation."""
+
+    name: str = spec("default", doc="run name (used in the default run directory)")
+    seed: int = spec(0, low=0, high=2**31 - 1)
+    log_every: int = spec(5, low=1, doc="updates per compiled chunk (one progress line / CSV row per chunk)")
+    checkpoint_every: int = spec(50, low=1, doc="updates between checkpoints (rounded up to whole chunks)")
+    keep_checkpoints: int = spec(3, low=1, doc="checkpoints kept on disk")
+    eval_episodes: int = spec(500, low=0, doc="episodes of the final evaluation (0: skip)")
+    eval_seed: int = spec(0, low=0, high=2**31 - 1)
+
+    def __post_init__(self):
+        check_fields(self, "run")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run needs: env, reward, ppo, network and run sections."""
+
+    env: EnvConfig = dataclasses.field(
+        default_factory=lambda: EnvConfig(num_humans=20, human_policy="orca", predictor="const_vel")
+    )
+    reward: RewardConfig = dataclasses.field(default_factory=lambda: RewardConfig(scheme="tgrf"))
+    ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
+    network: NetworkConfig = dataclasses.field(default_factory=NetworkConfig)
+    run: RunConfig = dataclasses.field(default_factory=RunConfig)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None) -> "TrainConfig":
+        data = dict(data or {})
+        valid = [f.name for f in dataclasses.fields(cls)]
+        for key, value in data.items():
+            if key not in valid:
+                raise _unknown_key_error(key, "", valid)
+            if value is None:
+                data[key] = {}
+        return from_dict(cls, data, "")
+
+    @classmethod
+    def from_yaml(cls, path, overrides: list[str] | None = None) -> "TrainConfig":
+        return cls.from_dict(apply_overrides(load_yaml(path), overrides or []))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)

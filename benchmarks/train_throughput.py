@@ -1,0 +1,114 @@
+"""Training throughput: env-steps/s of whole PPO updates (rollout + GAE + epochs x minibatches), per network
+and number of parallel envs, with a breakdown of where the time goes.
+
+For each (network, size, num_envs) on the paper scenario (20 humans, const_vel predictions, TGRF reward):
+  * ``train_sps``: env steps per second of `run_chunk` (U updates of num_envs x num_steps steps, compiled once)
+  * ``env_s`` / ``rollout_s`` / ``update_s`` per update: env stepping alone (a scan of the same number of
+    auto-reset steps with fixed actions), the rollout (env + policy forward + sampling), and the rest
+    (GAE, epochs x minibatches of sequence replay + backward + Adam) = update time - rollout time.
+
+    python -m benchmarks.train_throughput --quick --out bench_results/train_quick.json
+    python -m benchmarks.train_throughput --out bench_results/train_full.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+
+from benchmarks.common import machine_info, time_call, write_json
+from tgrf_jax.config import TrainConfig
+from tgrf_jax.train import make_train
+
+
+def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,
+            breakdown: bool, repeats: int) -> dict:
+    cfg = TrainConfig.from_dict({
+        "env": {"num_humans": 20, "human_policy": human_policy, "predictor": "const_vel"},
+        "network": {"name": name, "size": size},
+        "ppo": {"num_envs": num_envs, "num_steps": num_steps, "num_minibatches": 2 if num_envs % 2 == 0 else 1,
+                "update_epochs": 5, "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
+    })
+    t = make_train(cfg)
+    tr = t.trainer
+    state = t.init(jax.random.PRNGKey(0), t.default_hparams)
+    jax.block_until_ready(state)
+    steps = num_envs * num_steps * updates
+
+    start = time.perf_counter()
+    chunk = t.run_chunk.lower(state, updates).compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(chunk(state))  # warm-up
+    runs = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(chunk(state))
+        runs.append(time.perf_counter() - start)
+    run_s = sorted(runs)[len(runs) // 2]
+    out = {
+        "network": name, "size": size, "num_envs": num_envs, "num_steps": num_steps, "human_policy": human_policy,
+        "params": tr.net.num_params(state.params), "updates_per_call": updates, "compile_s": round(compile_s, 2),
+        "update_s": round(run_s / updates, 5), "train_sps": round(steps / run_s, 1),
+    }
+    if breakdown:
+        rollout = jax.jit(lambda s, k: tr.rollout(s, k)[1:])
+        _, roll_s = time_call(rollout, state, jax.random.PRNGKey(1), repeats=repeats)
+        step_env = jax.vmap(tr.env.step, in_axes=(0, 0, 0, None))
+
+        @jax.jit
+        def env_only(state, key):
+            def body(carry, k):
+                obs, env_state = carry
+                action = jnp.ones((num_envs, 2)) * 0.5
+                obs, env_state, reward, *_ = step_env(jax.random.split(k, num_envs), env_state, action,
+                                                      state.hparams.env)
+                return (obs, env_state), reward.sum()
+            return jax.lax.scan(body, (state.obs, state.env_state), jax.random.split(key, num_steps))[1]
+
+        _, env_s = time_call(env_only, state, jax.random.PRNGKey(2), repeats=repeats)
+        per_update = run_s / updates
+        out.update(
+            env_s=round(env_s, 5), rollout_s=round(roll_s, 5), policy_in_rollout_s=round(roll_s - env_s, 5),
+            learn_s=round(max(per_update - roll_s, 0.0), 5),
+            env_only_sps=round(num_envs * num_steps / env_s, 1),
+        )
+    return out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="HH Attn small at 64 envs, no breakdown (< 1 min)")
+    parser.add_argument("--out", help="write results as JSON")
+    parser.add_argument("--human-policy", default="orca", choices=["orca", "social_force"])
+    parser.add_argument("--envs", type=int, nargs="*", help="env counts (default: 64 256 1024; quick: 64)")
+    parser.add_argument("--nets", nargs="*", help="name/size pairs, e.g. hh_attn/small mlp/small")
+    args = parser.parse_args(argv)
+    if args.quick:
+        nets = args.nets or ["hh_attn/small"]
+        envs = args.envs or [64]
+        num_steps, updates, breakdown, repeats = 30, 1, False, 1
+    else:
+        nets = args.nets or ["hh_attn/small", "hh_attn/paper", "dsrnn/paper", "mlp/small"]
+        envs = args.envs or [64, 256, 1024]
+        num_steps, updates, breakdown, repeats = 30, 2, True, 3
+    results = []
+    print(f"{'net':>14} {'envs':>5} {'train sps':>10} {'compile s':>9} {'env s':>7} {'rollout s':>9} "
+          f"{'learn s':>8} (per update)", flush=True)
+    for spec in nets:
+        name, size = spec.split("/")
+        for n in envs:
+            if size == "paper" and name == "hh_attn" and n > 256 and not args.envs:
+                continue  # minutes per point on 2 cores
+            r = measure(name, size, n, args.human_policy, num_steps, updates, breakdown, repeats)
+            results.append(r)
+            print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} {r.get('env_s', 0):>7.3f} "
+                  f"{r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f}", flush=True)
+    write_json(args.out, {"machine": machine_info(), "benchmark": "train_throughput", "quick": args.quick,
+                          "results": results})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""tgrf-train / tgrf-eval RUN_DIR: run-directory artifacts, config errors, checkpoints, resume after SIGKILL."""
+
+import csv
+import json
+import os
+import pathlib
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import pytest
+
+from tgrf_jax.cli import eval_main, train_main
+from tgrf_jax.train.checkpoint import CheckpointError
+from tgrf_jax.train.loop import params_digest, restore_run
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = str(ROOT / "configs" / "tiny.yaml")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("runs") / "tiny"
+    assert train_main([TINY, "--out-dir", str(run_dir), "--set", "run.eval_episodes=8"]) == 0
+    return run_dir
+
+
+def test_train_writes_all_artifacts(tiny_run):
+    for name in ("config.yaml", "metrics.csv", "progress.log", "eval.json", "learning_curve.png"):
+        assert (tiny_run / name).is_file() and (tiny_run / name).stat().st_size > 0, name
+    steps = sorted(int(p.name) for p in (tiny_run / "checkpoints").iterdir() if p.name.isdigit())
+    assert steps[-1] == 12 and 8 in steps  # checkpoint_every 4, keep 3
+    assert not list((tiny_run / "checkpoints").glob("*tmp*"))  # all saves finalised
+    rows = list(csv.DictReader(open(tiny_run / "metrics.csv")))
+    assert [int(r["update"]) for r in rows] == [2, 4, 6, 8, 10, 12]
+    assert float(rows[-1]["sps"]) > 0
+    ev = json.loads((tiny_run / "eval.json").read_text())
+    assert ev["results"]["learned"]["n_episodes"] == 8 and ev["updates"] == 12
+    assert "run.eval_episodes" not in (tiny_run / "config.yaml").read_text()
+    assert "eval_episodes: 8" in (tiny_run / "config.yaml").read_text()
+
+
+def test_eval_run_dir(tiny_run, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    assert eval_main([str(tiny_run), "--episodes", "6", "--policy", "straight", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| learned | 6 |" in text and "| straight | 6 |" in text
+    payload = json.loads(out.read_text())
+    assert set(payload["results"]) == {"learned", "straight"} and payload["update"] == 12
+
+
+def test_config_errors_before_compile(tmp_path, capsys):
+    start = time.perf_counter()
+    assert train_main([TINY, "--set", "ppo.lrr=1e-3", "--out-dir", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "unknown config key 'ppo.lrr'" in err and "did you mean 'lr'" in err and "num_envs" in err
+    assert train_main([TINY, "--set", "ppo.clip_eps=-0.1", "--out-dir", str(tmp_path / "b")]) == 2
+    assert "ppo.clip_eps = -0.1 is out of range; allowed: > 0.0" in capsys.readouterr().err
+    assert train_main([TINY, "--set", "network.size=huge", "--out-dir", str(tmp_path / "c")]) == 2
+    assert "allowed: one of 'paper', 'small'" in capsys.readouterr().err
+    assert train_main([str(tmp_path / "nope.yaml")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert time.perf_counter() - start < 5.0  # nothing was compiled
+    assert not (tmp_path / "a").exists()
+
+
+def test_print_config_applies_overrides(capsys):
+    assert train_main(["--print-config", "--set", "ppo.lr=1e-4", "--set", "reward.h_disc=2.0"]) == 0
+    out = capsys.readouterr().out
+    assert "lr: 0.0001" in out and "h_disc: 2.0" in out
+
+
+def test_missing_and_corrupt_checkpoints_fail_clearly(tiny_run, tmp_path, capsys):
+    # missing: a run dir whose checkpoints are gone
+    gone = tmp_path / "gone"
+    shutil.copytree(tiny_run, gone)
+    shutil.rmtree(gone / "checkpoints")
+    assert train_main(["--resume", str(gone)]) == 2
+    err = capsys.readouterr().err
+    assert str(gone / "checkpoints") in err
+    # not a run dir at all
+    assert train_main(["--resume", str(tmp_path)]) == 2
+    assert "config.yaml" in capsys.readouterr().err
+    # corrupt: damage every data file of the latest checkpoint
+    bad = tmp_path / "bad"
+    shutil.copytree(tiny_run, bad)
+    latest = bad / "checkpoints" / "12"
+    for f in latest.rglob("*"):
+        if f.is_file():
+            f.write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match=str(latest)):
+        restore_run(bad)
+    assert eval_main([str(bad), "--episodes", "2"]) == 2
+    assert str(latest) in capsys.readouterr().err
+
+
+def _cli(args, **kw):
+    code = "import sys; from tgrf_jax.cli import train_main; sys.exit(train_main(sys.argv[1:]))"
+    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    return subprocess.Popen([sys.executable, "-c", code, *args], cwd=ROOT, env=env, **kw)
+
+
+@pytest.mark.slow
+def test_resume_after_sigkill_matches_uninterrupted(tmp_path):
+    """Kill -9 a run right after its first checkpoint, resume it, and compare with an uninterrupted run."""
+    sets = ["--set", "ppo.total_steps=8192", "--set", "run.checkpoint_every=4", "--set", "run.log_every=2",
+            "--set", "run.eval_episodes=0"]  # 64 updates, 16 checkpoints
+    full, killed = tmp_path / "full", tmp_path / "killed"
+    assert _cli([TINY, "--out-dir", str(full), *sets]).wait(timeout=300) == 0
+
+    proc = _cli([TINY, "--out-dir", str(killed), *sets], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpts = killed / "checkpoints"
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        if ckpts.is_dir() and any(p.name.isdigit() and int(p.name) > 0 for p in ckpts.iterdir()):
+            break
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    done = sorted(int(p.name) for p in ckpts.iterdir() if p.name.isdigit())
+    assert done[-1] < 64, f"the run finished before it was killed ({done})"
+
+    assert _cli(["--resume", str(killed)]).wait(timeout=300) == 0
+    _, s_full = restore_run(full)
+    _, s_res = restore_run(killed)
+    assert int(s_full.update) == int(s_res.update) == 64
+    assert params_digest(s_full.params) == params_digest(s_res.params)
+    assert params_digest(s_full.opt_state) == params_digest(s_res.opt_state)
+    assert params_digest(s_full.env_state) == params_digest(s_res.env_state)
+    rows = [int(r["update"]) for r in csv.DictReader(open(killed / "metrics.csv"))]
+    assert rows == list(range(2, 65, 2))  # no duplicated rows after the resume

@@ -1,0 +1,344 @@
+"""Recurrent PPO as one compiled program (PureJaxRL style, Brax-style chunking).
+
+    trainer = make_train(config)                      # static choices: shapes, network, env code paths
+    hparams = trainer.default_hparams                 # traced numeric settings (vmap over them for sweeps)
+    state = trainer.init(key, hparams)                # TrainState: params, optimiser, envs, carries, RNG
+    state, metrics = trainer.run_chunk(state, 10)     # 10 PPO updates in one jitted lax.scan; reduced scalars
+    state, metrics = trainer.train(key, hparams)      # the whole run (pure; jit / vmap it)
+
+One update: roll out `num_steps` steps in `num_envs` environments (the recurrent carry is reset where the
+previous step ended an episode), compute GAE (time-limit truncations bootstrap from V(info.final_obs) evaluated
+with the carry after the step; terminations cut the bootstrap), then `update_epochs` epochs over
+`num_minibatches` minibatches of whole env sequences, each replayed from the carry stored at rollout step 0.
+
+Everything stochastic draws from the key inside `TrainState`, so a run is a deterministic function of its seed
+and hyper-parameters, and a checkpointed `TrainState` resumes bit-for-bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from tgrf_jax.config import TrainConfig
+from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams, EnvState, Obs
+from tgrf_jax.nets import ActorCritic, make_network
+
+
+@struct.dataclass
+class HParams:
+    """Numeric hyper-parameters, traced: `vmap(train, in_axes=(0, 0))` over seeds x grid points works."""
+
+    env: EnvParams  # includes the reward parameters (env.reward)
+    lr: jnp.ndarray
+    gamma: jnp.ndarray
+    gae_lambda: jnp.ndarray
+    clip_eps: jnp.ndarray
+    vf_coef: jnp.ndarray
+    ent_coef: jnp.ndarray
+    max_grad_norm: jnp.ndarray
+
+
+@struct.dataclass
+class TrainState:
+    """Complete state of a run between updates (checkpoint this and a resumed run is bit-identical)."""
+
+    params: dict
+    opt_state: optax.OptState
+    env_state: EnvState
+    obs: Obs  # current observation of every env (B, ...)
+    carry: dict  # recurrent state before processing `obs`
+    resets: jnp.ndarray  # (B,) bool: `obs` starts a new episode (the previous step ended one)
+    ep_return: jnp.ndarray  # (B,) return of the running episode so far
+    key: jnp.ndarray  # raw uint32 PRNG key
+    update: jnp.ndarray  # () int32 updates done
+    hparams: HParams
+
+
+class Transition(NamedTuple):
+    obs: Obs
+    resets: jnp.ndarray
+    action: jnp.ndarray  # unclipped Gaussian sample (the env clips it; log-probs use the sample)
+    log_prob: jnp.ndarray
+    value: jnp.ndarray
+    reward: jnp.ndarray
+    done: jnp.ndarray  # terminated | truncated
+    truncated: jnp.ndarray
+    final_value: jnp.ndarray  # V(info.final_obs) where truncated, else 0
+
+
+# Reduced per-update scalars. Episode fields are sums (of episodes finished in the update) so a chunk can add them.
+METRIC_NAMES = (
+    "episodes", "return_sum", "successes", "collisions", "timeouts",
+    "loss", "pg_loss", "vf_loss", "entropy", "approx_kl", "clip_frac", "grad_norm", "lr", "reward_mean",
+)
+_SUMMED = ("episodes", "return_sum", "successes", "collisions", "timeouts")
+
+
+def hparams_from_config(config: TrainConfig, env: CrowdNavEnv | None = None) -> HParams:
+    env = env or CrowdNavEnv(config.env, config.reward)
+    p = config.ppo
+    f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return HParams(
+        env=env.default_params, lr=f(p.lr), gamma=f(p.gamma), gae_lambda=f(p.gae_lambda), clip_eps=f(p.clip_eps),
+        vf_coef=f(p.vf_coef), ent_coef=f(p.ent_coef), max_grad_norm=f(p.max_grad_norm),
+    )
+
+
+# ------------------------------------------------------------------------------------------------ pure pieces
+
+
+def compute_gae(rewards, values, dones, truncated, final_values, last_value, gamma, gae_lambda):
+    """Generalised advantage estimation over a time-major rollout (T, B).
+
+    values[t] = V(obs_t); last_value = V(obs_T). When step t ends an episode (dones[t]) the next observation
+    belongs to a new episode, so V(obs_{t+1}) is not used; a truncated step bootstraps from
+    final_values[t] = V(final obs of the ended episode) instead, a terminated one from nothing.
+    Returns (advantages, returns = advantages + values).
+    """
+    dones = dones.astype(jnp.float32)
+    truncated = truncated.astype(jnp.float32)
+    next_values = jnp.concatenate([values[1:], last_value[None]], axis=0)
+    deltas = rewards + gamma * ((1.0 - dones) * next_values + truncated * final_values) - values
+
+    def body(gae, xs):
+        delta, done = xs
+        gae = delta + gamma * gae_lambda * (1.0 - done) * gae
+        return gae, gae
+
+    _, adv = jax.lax.scan(body, jnp.zeros_like(last_value), (deltas, dones), reverse=True)
+    return adv, adv + values
+
+
+def ppo_loss(net: ActorCritic, params, carry0, batch: Transition, advantages, returns, hp: HParams,
+             clip_value: bool):
+    """Clipped PPO loss of one minibatch of whole sequences (T, b), replayed from carry0 (b,)."""
+    _, pi, values = net.apply_sequence(params, carry0, batch.obs, batch.resets)
+    log_prob = pi.log_prob(batch.action)
+    ratio = jnp.exp(log_prob - batch.log_prob)
+    pg1 = ratio * advantages
+    pg2 = jnp.clip(ratio, 1.0 - hp.clip_eps, 1.0 + hp.clip_eps) * advantages
+    pg_loss = -jnp.mean(jnp.minimum(pg1, pg2))
+    sq = jnp.square(values - returns)
+    if clip_value:
+        v_clipped = batch.value + jnp.clip(values - batch.value, -hp.clip_eps, hp.clip_eps)
+        sq = jnp.maximum(sq, jnp.square(v_clipped - returns))
+    vf_loss = 0.5 * jnp.mean(sq)
+    entropy = jnp.mean(pi.entropy())
+    loss = pg_loss + hp.vf_coef * vf_loss - hp.ent_coef * entropy
+    aux = dict(
+        pg_loss=pg_loss, vf_loss=vf_loss, entropy=entropy,
+        approx_kl=jnp.mean((ratio - 1.0) - jnp.log(ratio)),
+        clip_frac=jnp.mean((jnp.abs(ratio - 1.0) > hp.clip_eps).astype(jnp.float32)),
+    )
+    return loss, aux
+
+
+def clip_by_global_norm(grads, max_norm):
+    """optax.clip_by_global_norm with a traced max_norm; returns (clipped grads, pre-clip norm)."""
+    g_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree_util.tree_leaves(grads)))
+    scale = jnp.where(g_norm > max_norm, max_norm / jnp.maximum(g_norm, 1e-12), 1.0)
+    return jax.tree_util.tree_map(lambda g: g * scale, grads), g_norm
+
+
+# ---------------------------------------------------------------------------------------------------- trainer
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Trainer:
+    """The compiled pieces of one training configuration (see the module docstring)."""
+
+    config: TrainConfig
+    env: CrowdNavEnv
+    net: ActorCritic
+
+    @property
+    def num_updates(self) -> int:
+        return self.config.ppo.num_updates
+
+    @property
+    def default_hparams(self) -> HParams:
+        return hparams_from_config(self.config, self.env)
+
+    # ------------------------------------------------------------------------------------------------ init
+    def init(self, key, hparams: HParams | None = None) -> TrainState:
+        """Fresh TrainState from a key (raw uint32 or typed)."""
+        hparams = self.default_hparams if hparams is None else hparams
+        if jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
+            key = jax.random.key_data(key)
+        p = self.config.ppo
+        key, k_net, k_env = jax.random.split(key, 3)
+        params = self.net.init(k_net)
+        obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(k_env, p.num_envs), hparams.env)
+        return TrainState(
+            params=params,
+            opt_state=self._adam.init(params),
+            env_state=env_state,
+            obs=obs,
+            carry=self.net.initialize_carry(p.num_envs),
+            resets=jnp.ones((p.num_envs,), bool),
+            ep_return=jnp.zeros((p.num_envs,), jnp.float32),
+            key=key,
+            update=jnp.zeros((), jnp.int32),
+            hparams=hparams,
+        )
+
+    @property
+    def _adam(self):
+        return optax.scale_by_adam(eps=self.config.ppo.adam_eps)
+
+    # --------------------------------------------------------------------------------------------- rollout
+    def rollout(self, ts: TrainState, key):
+        """num_steps steps in every env. Returns (ts with new env/obs/carry, transitions (T, B), carry0, last_value,
+        episode sums)."""
+        p = self.config.ppo
+        net, env, hp = self.net, self.env, ts.hparams
+        step_env = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+
+        def env_step(runner, k):
+            env_state, obs, carry, resets, ep_return = runner
+            k_act, k_env = jax.random.split(k)
+            carry, pi, value = net.apply(ts.params, carry, obs, resets)
+            action = pi.sample(seed=k_act)
+            log_prob = pi.log_prob(action)
+            next_obs, env_state, reward, terminated, truncated, info = step_env(
+                jax.random.split(k_env, p.num_envs), env_state, action, hp.env
+            )
+            done = terminated | truncated
+
+            # Bootstrap value of truncated episodes: V(final_obs) with the carry after this step. Only computed
+            # when some env truncated (rare: once per 200 steps at most).
+            def final_values(_):
+                return net.apply(ts.params, carry, info.final_obs, None)[2]
+
+            final_value = jax.lax.cond(jnp.any(truncated), final_values,
+                                       lambda _: jnp.zeros_like(value), None)
+            final_value = jnp.where(truncated, final_value, 0.0)
+            ep_return = ep_return + reward
+            outcome = info.outcome
+            ep = dict(
+                episodes=jnp.sum(done), return_sum=jnp.sum(jnp.where(done, ep_return, 0.0)),
+                successes=jnp.sum(done & (outcome == SUCCESS)), collisions=jnp.sum(done & (outcome == COLLISION)),
+                timeouts=jnp.sum(done & (outcome == TIMEOUT)),
+            )
+            ep_return = jnp.where(done, 0.0, ep_return)
+            tr = Transition(obs, resets, action, log_prob, value, reward, done, truncated, final_value)
+            return (env_state, next_obs, carry, done, ep_return), (tr, ep)
+
+        runner = (ts.env_state, ts.obs, ts.carry, ts.resets, ts.ep_return)
+        runner, (traj, ep) = jax.lax.scan(env_step, runner, jax.random.split(key, p.num_steps))
+        env_state, obs, carry, resets, ep_return = runner
+        last_value = net.apply(ts.params, carry, obs, resets)[2]
+        carry0 = ts.carry
+        ts = ts.replace(env_state=env_state, obs=obs, carry=carry, resets=resets, ep_return=ep_return)
+        ep = {k: jnp.sum(v).astype(jnp.float32) for k, v in ep.items()}
+        return ts, traj, carry0, last_value, ep
+
+    # ---------------------------------------------------------------------------------------------- update
+    def update(self, ts: TrainState) -> tuple[TrainState, dict]:
+        """One PPO update: rollout -> GAE -> epochs x minibatches. Returns (ts, reduced scalar metrics)."""
+        p = self.config.ppo
+        hp = ts.hparams
+        key, k_roll, k_perm = jax.random.split(ts.key, 3)
+        ts, traj, carry0, last_value, ep = self.rollout(ts, k_roll)
+
+        # --- advantages
+        adv, returns = compute_gae(traj.reward, traj.value, traj.done, traj.truncated, traj.final_value,
+                                   last_value, hp.gamma, hp.gae_lambda)
+        if p.norm_adv:
+            adv = (adv - adv.mean()) / (adv.std() + 1e-5)
+
+        # --- learning rate (optional linear decay to 0 over the run)
+        if p.anneal_lr:
+            lr = hp.lr * (1.0 - ts.update.astype(jnp.float32) / self.num_updates)
+        else:
+            lr = hp.lr
+
+        # --- epochs x minibatches over envs (whole sequences)
+        n_mb = p.num_minibatches
+        mb_envs = p.num_envs // n_mb
+        loss_grad = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
+
+        def minibatch_step(carry, mb):
+            params, opt_state = carry
+            c0, batch, a, r = mb
+            (loss, aux), grads = loss_grad(self.net, params, c0, batch, a, r, hp, p.clip_value)
+            grads, g_norm = clip_by_global_norm(grads, hp.max_grad_norm)
+            updates, opt_state = self._adam.update(grads, opt_state, params)
+            params = optax.apply_updates(params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
+            return (params, opt_state), dict(aux, loss=loss, grad_norm=g_norm)
+
+        def epoch(carry, k):
+            perm = jax.random.permutation(k, p.num_envs)
+            take_env = lambda x, axis: jnp.take(x, perm, axis=axis)  # noqa: E731
+            # time-major data (T, B, ...) -> (n_mb, T, b, ...); carries (B, ...) -> (n_mb, b, ...)
+            split_t = lambda x: jnp.moveaxis(  # noqa: E731
+                take_env(x, 1).reshape((x.shape[0], n_mb, mb_envs) + x.shape[2:]), 1, 0)
+            split_c = lambda x: take_env(x, 0).reshape((n_mb, mb_envs) + x.shape[1:])  # noqa: E731
+            mbs = (
+                jax.tree_util.tree_map(split_c, carry0),
+                jax.tree_util.tree_map(split_t, traj),
+                split_t(adv),
+                split_t(returns),
+            )
+            return jax.lax.scan(minibatch_step, carry, mbs)
+
+        (params, opt_state), losses = jax.lax.scan(
+            epoch, (ts.params, ts.opt_state), jax.random.split(k_perm, p.update_epochs)
+        )
+        metrics = {k: jnp.mean(v) for k, v in losses.items()}
+        metrics.update(ep, lr=jnp.asarray(lr, jnp.float32), reward_mean=jnp.mean(traj.reward))
+        ts = ts.replace(params=params, opt_state=opt_state, key=key, update=ts.update + 1)
+        return ts, metrics
+
+    # --------------------------------------------------------------------------------------- chunks / train
+    def run_updates(self, ts: TrainState, n_updates: int) -> tuple[TrainState, dict]:
+        """`n_updates` updates in one lax.scan (pure). Metrics reduced over the chunk: episode fields summed,
+        the rest averaged over updates."""
+        ts, per_update = jax.lax.scan(lambda s, _: self.update(s), ts, None, length=n_updates)
+        return ts, reduce_metrics(per_update)
+
+    def train(self, key, hparams: HParams | None = None) -> tuple[TrainState, dict]:
+        """The whole run as one pure function of (key, hparams); metrics per update (num_updates,)."""
+        ts = self.init(key, hparams)
+        return jax.lax.scan(lambda s, _: self.update(s), ts, None, length=self.num_updates)
+
+
+def reduce_metrics(per_update: dict) -> dict:
+    """Chunk metrics: episode counts/sums added over the leading (update) axis, others averaged."""
+    return {k: (jnp.sum(v, axis=0) if k in _SUMMED else jnp.mean(v, axis=0)) for k, v in per_update.items()}
+
+
+def make_network_for(config: TrainConfig) -> ActorCritic:
+    env_cfg = config.env
+    return make_network(config.network.name, config.network.size, env_cfg.obs_human_dim, env_cfg.num_humans)
+
+
+class Train(NamedTuple):
+    """What `make_train` returns: a pure `train(key, hparams)` plus the chunking seams."""
+
+    train: callable  # (key, hparams) -> (TrainState, per-update metrics)
+    init: callable  # jitted (key, hparams) -> TrainState
+    run_chunk: callable  # jitted (TrainState, n_updates static) -> (TrainState, chunk metrics)
+    trainer: Trainer
+    default_hparams: HParams
+
+
+def make_train(config: TrainConfig) -> Train:
+    """Build the compiled training functions of `config` (validated already: a TrainConfig cannot be invalid)."""
+    if not isinstance(config, TrainConfig):
+        raise TypeError(f"make_train needs a TrainConfig, not {type(config).__name__}")
+    env = CrowdNavEnv(config.env, config.reward)
+    trainer = Trainer(config, env, make_network_for(config))
+    return Train(
+        train=trainer.train,
+        init=jax.jit(trainer.init),
+        run_chunk=jax.jit(trainer.run_updates, static_argnums=1),
+        trainer=trainer,
+        default_hparams=trainer.default_hparams,
+    )
