@@ -5,8 +5,10 @@
 Scenes are environment-like: N agents uniformly in a square whose area grows with N (about 3.2 m^2 per
 agent, i.e. a 8 m square for 20), radii U(0.3, 0.5) + 0.16, max speeds U(0.5, 1.5), random current velocities
 and goals; ORCA settings as in the environment (time horizon 5 s, dt 0.25 s, neighbour distance 10 m, all
-other agents as neighbours).  Timings: compile (first call) separately, then the median of several
-``block_until_ready`` runs.
+other agents as neighbours).  These random "initial" scenes are dense: about 64% of the agents need
+linearProgram3.  A second set, "crossing", holds mid-rollout states of circle crossings (20 agents on an 8 m
+ring heading to the antipode, 200-step JAX rollouts, states of steps 40-120 sampled), where about 7% need it.
+Timings: compile (first call) separately, then the median of several ``block_until_ready`` runs.
 """
 
 from __future__ import annotations
@@ -45,6 +47,41 @@ def random_scenes(n_scenes: int, n_agents: int, seed: int = 0) -> dict:
                 max_speed=f(max_speed))
 
 
+def crossing_states(n_scenes: int, n_agents: int, seed: int = 0, n_rollouts: int = 64) -> dict:
+    """``n_scenes`` states sampled from steps 40-120 of circle-crossing rollouts (the crowd crossing the centre).
+
+    ``n_rollouts`` scenes: agents evenly on an 8 m ring (angles jittered by U(-0.1, 0.1) rad, positions by
+    N(0, 0.05) m), goal the antipode, radii U(0.3, 0.5) + 0.16, max speeds U(0.5, 1.5), preferred velocity
+    towards the goal (unit, or the raw offset within 1 m), rolled out with this solver (dt 0.25 s).
+    """
+    rng = np.random.default_rng(seed)
+    ang = np.linspace(0, 2 * np.pi, n_agents, endpoint=False)[None] + rng.uniform(-0.1, 0.1, (n_rollouts, n_agents))
+    pos0 = np.stack([np.cos(ang), np.sin(ang)], -1) * 8.0 + rng.normal(0, 0.05, (n_rollouts, n_agents, 2))
+    f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    pos0, goal = f(pos0), f(-pos0)
+    radius = f(rng.uniform(0.3, 0.5, (n_rollouts, n_agents)) + 0.16)
+    max_speed = f(rng.uniform(0.5, 1.5, (n_rollouts, n_agents)))
+    solve = jax.vmap(lambda p, v, r, pr, m: orca.solve(p, v, r, pr, m, max_neighbors=n_agents - 1, **SETTINGS))
+
+    @jax.jit
+    def rollout(pos0):
+        def step(carry, _):
+            p, v = carry
+            d = goal - p
+            pref = d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1.0)
+            v = solve(p, v, radius, pref, max_speed)
+            return (p + v * SETTINGS["dt"], v), (p, carry[1], pref)
+
+        return jax.lax.scan(step, (pos0, jnp.zeros_like(pos0)), None, length=121)[1]
+
+    p, v, pref = (np.asarray(x[40:121]).reshape((-1, n_agents, 2)) for x in rollout(pos0))
+    steps = 121 - 40
+    rad = np.broadcast_to(np.asarray(radius), (steps, n_rollouts, n_agents)).reshape(-1, n_agents)
+    vmax = np.broadcast_to(np.asarray(max_speed), (steps, n_rollouts, n_agents)).reshape(-1, n_agents)
+    idx = rng.integers(0, p.shape[0], n_scenes)
+    return dict(pos=p[idx], vel=v[idx], radius=rad[idx], pref=pref[idx], max_speed=vmax[idx])
+
+
 def rvo2_dostep_rate(n_agents: int, n_steps: int, seed: int = 0) -> float:
     """Python-RVO2 doSteps per second for one simulator of ``n_agents`` (the on-machine reference).
 
@@ -71,23 +108,26 @@ def rvo2_dostep_rate(n_agents: int, n_steps: int, seed: int = 0) -> float:
     return n_steps / (time.perf_counter() - start)
 
 
-def time_jax(batch: int, n_agents: int, repeats: int, seed: int = 0) -> dict:
-    """Compile time and median run time of the batched solver on ``batch`` scenes of ``n_agents``."""
-    scenes = {k: jnp.asarray(v) for k, v in random_scenes(batch, n_agents, seed).items()}
-    fn = jax.jit(jax.vmap(lambda p, v, r, pr, m: orca.solve(p, v, r, pr, m, max_neighbors=n_agents - 1,
-                                                            **SETTINGS)))
+def time_jax(batch: int, n_agents: int, repeats: int, seed: int = 0, kind: str = "initial") -> dict:
+    """Compile time and median run time of the batched solver on ``batch`` scenes of ``n_agents``
+    (kind: "initial" random scenes or "crossing" mid-rollout states)."""
+    make = random_scenes if kind == "initial" else crossing_states
+    scenes = {k: jnp.asarray(v) for k, v in make(batch, n_agents, seed).items()}
+    fn = jax.jit(jax.vmap(lambda p, v, r, pr, m: orca.solve_with_info(p, v, r, pr, m, max_neighbors=n_agents - 1,
+                                                                      **SETTINGS)))
     args = (scenes["pos"], scenes["vel"], scenes["radius"], scenes["pref"], scenes["max_speed"])
     t0 = time.perf_counter()
     compiled = fn.lower(*args).compile()
     compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(*args))  # warm-up (allocations)
+    lp3_share = float(np.mean(np.asarray(compiled(*args)[1])))  # also the warm-up (allocations)
     runs = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         jax.block_until_ready(compiled(*args))
         runs.append(time.perf_counter() - t0)
     med = statistics.median(runs)
-    return dict(batch=batch, n_agents=n_agents, compile_s=compile_s, median_s=med, min_s=min(runs),
+    return dict(kind=kind, batch=batch, n_agents=n_agents, lp3_share=lp3_share, compile_s=compile_s, median_s=med,
+                min_s=min(runs),
                 scenes_per_s=batch / med, agent_steps_per_s=batch * n_agents / med, repeats=repeats)
 
 
@@ -105,20 +145,23 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
 
     if args.quick:
-        cases = [(b, 20) for b in (1, 16, 256)] + [(64, n) for n in (5, 10)]
+        cases = [(b, 20, k) for k in ("initial", "crossing") for b in (1, 16, 256)] + [(64, n, "initial")
+                                                                                      for n in (5, 10)]
         repeats, rvo2_steps = 3, 300
     else:
-        cases = [(b, 20) for b in (1, 16, 256, 1024, 4096)] + [(b, n) for n in (5, 10, 50) for b in (256, 1024)]
+        cases = ([(b, 20, k) for k in ("initial", "crossing") for b in (1, 16, 256, 1024, 4096)]
+                 + [(b, n, "initial") for n in (5, 10, 50) for b in (256, 1024)])
         repeats, rvo2_steps = 5, 2000
 
     results = dict(machine=machine_info(), settings=SETTINGS, jax=[], rvo2=[])
-    print(f"{'agents':>6} {'batch':>6} {'compile s':>10} {'median ms':>10} {'scenes/s':>12} {'agent-steps/s':>14}")
-    for batch, n in cases:
-        r = time_jax(batch, n, repeats)
+    print(f"{'scenes':>9} {'agents':>6} {'batch':>6} {'LP3 %':>6} {'compile s':>10} {'median ms':>10} {'scenes/s':>12} "
+          f"{'agent-steps/s':>14}")
+    for batch, n, kind in cases:
+        r = time_jax(batch, n, repeats, kind=kind)
         results["jax"].append(r)
-        print(f"{n:>6} {batch:>6} {r['compile_s']:>10.1f} {1e3 * r['median_s']:>10.2f} {r['scenes_per_s']:>12.0f} "
-              f"{r['agent_steps_per_s']:>14.0f}", flush=True)
-    for n in sorted({n for _, n in cases}):
+        print(f"{kind:>9} {n:>6} {batch:>6} {100 * r['lp3_share']:>6.1f} {r['compile_s']:>10.1f} "
+              f"{1e3 * r['median_s']:>10.2f} {r['scenes_per_s']:>12.0f} {r['agent_steps_per_s']:>14.0f}", flush=True)
+    for n in sorted({n for _, n, _ in cases}):
         rate = rvo2_dostep_rate(n, rvo2_steps)
         results["rvo2"].append(dict(n_agents=n, dostep_per_s=rate, agent_steps_per_s=rate * n))
         print(f"RVO2 doStep, {n:>3} agents: {rate:>10.0f} steps/s ({rate * n:.0f} agent-steps/s), one core")
