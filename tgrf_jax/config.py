@@ -353,6 +353,7 @@ def reward_config_from_dict(data: Mapping[str, Any] | None) -> RewardConfig:
 
 NETWORK_NAMES = ("hh_attn", "dsrnn", "mlp")
 NETWORK_SIZES = ("paper", "small")
+FRAMES = ("world", "goal")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -408,6 +409,9 @@ class PPOConfig:
 class NetworkConfig:
     name: str = spec("hh_attn", choices=NETWORK_NAMES)
     size: str = spec("small", choices=NETWORK_SIZES)
+    frame: str = spec("goal", choices=FRAMES,
+                      doc="'world': the reference's inputs; 'goal': robot-centred frame with x towards the goal")
+    init_log_std: float = spec(0.0, low=-5.0, high=2.0, doc="initial log-std of the Gaussian policy (reference: 0)")
 
     def __post_init__(self):
         check_fields(self, "network")

@@ -25,6 +25,7 @@ from flax import linen as nn
 from tgrf_jax.env.types import Obs
 from tgrf_jax.nets.common import count_params, reset_carry
 from tgrf_jax.nets.dsrnn import DSRNN_SIZES, DSRNNNet
+from tgrf_jax.nets.frames import FRAMES, action_to_world, to_goal_frame
 from tgrf_jax.nets.hh_attn import HH_ATTN_SIZES, HHAttnNet
 from tgrf_jax.nets.mlp import MLP_SIZES, MLPNet
 
@@ -49,18 +50,22 @@ def dummy_obs(batch_shape, num_humans: int, obs_human_dim: int) -> Obs:
 class ActorCritic:
     """A policy module plus the recurrent PPO interface. Stateless: parameters are passed explicitly."""
 
-    def __init__(self, name: str, size: str, module: nn.Module, obs_human_dim: int, num_humans: int, action_dim: int):
+    def __init__(self, name: str, size: str, module: nn.Module, obs_human_dim: int, num_humans: int, action_dim: int,
+                 frame: str = "world", rotate_action: bool = False, init_log_std: float = 0.0):
         self.name = name
         self.size = size
         self.module = module
         self.obs_human_dim = obs_human_dim
         self.num_humans = num_humans
         self.action_dim = action_dim
+        self.frame = frame
+        self.rotate_action = rotate_action
+        self.init_log_std = init_log_std
 
     def __repr__(self):
         return (
             f"ActorCritic(name={self.name!r}, size={self.size!r}, obs_human_dim={self.obs_human_dim}, "
-            f"num_humans={self.num_humans}, action_dim={self.action_dim})"
+            f"num_humans={self.num_humans}, action_dim={self.action_dim}, frame={self.frame!r})"
         )
 
     # ------------------------------------------------------------------------------------------------ state
@@ -78,7 +83,10 @@ class ActorCritic:
             obs = self.dummy_obs(1)
         self._check_obs(obs, batch_ndim=1)
         batch = obs.robot_node.shape[0]
-        return self.module.init(key, self.initialize_carry(batch), obs)
+        params = self.module.init(key, self.initialize_carry(batch), obs)
+        log_std = params["params"]["heads"]["log_std"]
+        params["params"]["heads"]["log_std"] = jnp.full_like(log_std, self.init_log_std)
+        return params
 
     def num_params(self, params) -> int:
         return count_params(params)
@@ -96,7 +104,13 @@ class ActorCritic:
     def _step(self, params, carry, obs: Obs, resets):
         if resets is not None:
             carry = reset_carry(carry, jnp.asarray(resets, bool))
-        return self.module.apply(params, carry, obs)
+        if self.frame == "world":
+            return self.module.apply(params, carry, obs)
+        local, axes = to_goal_frame(obs)
+        carry, (mean, log_std, value) = self.module.apply(params, carry, local)
+        if self.rotate_action:
+            mean = action_to_world(mean, axes)
+        return carry, (mean, log_std, value)
 
     def _dist(self, mean, log_std):
         return distrax.MultivariateNormalDiag(mean, jnp.broadcast_to(jnp.exp(log_std), mean.shape))
@@ -121,12 +135,18 @@ class ActorCritic:
         return carry_T, self._dist(means, log_std), values
 
 
-def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, action_dim: int = 2) -> ActorCritic:
+def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, action_dim: int = 2, *,
+                 frame: str = "world", rotate_action: bool = False, init_log_std: float = 0.0) -> ActorCritic:
     """Build a policy: name in ("hh_attn", "dsrnn", "mlp"), size in ("paper", "small").
 
     obs_human_dim: D, features per human row (2 without predictions, 2 (K + 1) with K predicted positions).
     num_humans: N, rows of obs.humans (N = 0 is allowed).
+    frame: "world" (the reference's inputs) or "goal" (inputs re-expressed in the robot-centred, goal-aligned frame;
+    see `tgrf_jax.nets.frames`). rotate_action: the action is a planar velocity to rotate back to the world frame
+    (holonomic robots; a unicycle's (dv, dtheta) is frame-free). init_log_std: initial value of the log-std.
     """
+    if frame not in FRAMES:
+        raise ValueError(f"unknown frame {frame!r}; valid frames: {', '.join(FRAMES)}")
     if name not in NETWORK_NAMES:
         raise ValueError(f"unknown network {name!r}; valid names: {', '.join(NETWORK_NAMES)}")
     if size not in NETWORK_SIZES:
@@ -142,4 +162,5 @@ def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, acti
         module = DSRNNNet(DSRNN_SIZES[size], num_humans=num_humans, action_dim=action_dim)
     else:
         module = MLPNet(MLP_SIZES[size], action_dim=action_dim)
-    return ActorCritic(name, size, module, obs_human_dim, num_humans, action_dim)
+    return ActorCritic(name, size, module, obs_human_dim, num_humans, action_dim, frame=frame,
+                       rotate_action=rotate_action and frame == "goal", init_log_std=init_log_std)

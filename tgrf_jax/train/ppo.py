@@ -316,7 +316,9 @@ def reduce_metrics(per_update: dict) -> dict:
 
 def make_network_for(config: TrainConfig) -> ActorCritic:
     env_cfg = config.env
-    return make_network(config.network.name, config.network.size, env_cfg.obs_human_dim, env_cfg.num_humans)
+    n = config.network
+    return make_network(n.name, n.size, env_cfg.obs_human_dim, env_cfg.num_humans, frame=n.frame,
+                        rotate_action=env_cfg.kinematics == "holonomic", init_log_std=n.init_log_std)
 
 
 class Train(NamedTuple):
