@@ -14,7 +14,7 @@ from PIL import Image
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax import render
 from tgrf_jax.env import OUTCOME_NAMES
-from tgrf_jax.evaluate import run_episodes
+from tgrf_jax.evaluate import evaluate
 from tgrf_jax.policies import StraightPolicy
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -33,7 +33,7 @@ def env():
 
 @pytest.fixture(scope="module")
 def episodes(env):
-    return render.record_episodes(env, StraightPolicy(), jax.random.key(0), N_EPISODES, label="straight")
+    return render.record_episodes(env, StraightPolicy(), render.eval_key(0), N_EPISODES, label="straight")
 
 
 def test_record_shapes_and_terms(episodes, env):
@@ -54,16 +54,20 @@ def test_record_shapes_and_terms(episodes, env):
         assert np.all(np.isfinite(ep.robot_pos)) and np.all(np.isfinite(ep.human_pos))
 
 
-def test_record_is_the_evaluated_episode(episodes, env):
-    """Same keys and step order as tgrf_jax.evaluate: outcome, length, return and path length agree per episode."""
-    stats = jax.jit(run_episodes, static_argnums=(0, 1, 3))(
-        env, StraightPolicy(), jax.random.key(0), N_EPISODES, env.default_params)
-    for b, ep in enumerate(episodes):
-        assert OUTCOME_NAMES[int(stats.outcome[b])] == ep.outcome
-        assert int(stats.steps[b]) == ep.steps
-        np.testing.assert_allclose(float(stats.ret[b]), ep.ret, rtol=1e-5, atol=1e-4)
-        path = np.linalg.norm(np.diff(ep.robot_pos, axis=0), axis=-1).sum()
-        np.testing.assert_allclose(float(stats.path_length[b]), path, rtol=1e-5, atol=1e-4)
+def test_record_replays_the_evaluation(episodes, env):
+    """record_episodes(eval_key(s)) replays evaluate(key(s)): the same outcomes, times, paths and returns."""
+    result = evaluate(env, StraightPolicy(), jax.random.key(0), N_EPISODES)
+    outcome = np.array([ep.outcome for ep in episodes])
+    success = outcome == "success"
+    assert result.success_rate == pytest.approx(success.mean())
+    assert result.collision_rate == pytest.approx(np.mean(outcome == "collision"))
+    assert result.mean_return == pytest.approx(np.mean([ep.ret for ep in episodes]), rel=1e-5, abs=1e-4)
+    if success.any():
+        assert result.nav_time == pytest.approx(np.mean([ep.duration for ep in episodes if ep.outcome == "success"]))
+        paths = [ep.summary()["path_length"] for ep in episodes if ep.outcome == "success"]
+        assert result.path_length == pytest.approx(np.mean(paths), rel=1e-4)
+    itr_disc = np.mean([np.mean(ep.dmin()[1:] < ep.d_disc) for ep in episodes])
+    assert result.itr_disc == pytest.approx(100 * itr_disc, abs=1e-3)
 
 
 def test_visibility_matches_the_env(episodes, env):

@@ -180,11 +180,20 @@ def _record_jit():
     return jax.jit(_record, static_argnums=(0, 1, 3, 5))
 
 
+def eval_key(seed: int):
+    """The key with which `tgrf_jax.evaluate.evaluate(env, policy, jax.random.key(seed), n)` (and so `tgrf-eval
+    --seed`) plays its episodes (its first batch): `record_episodes(env, policy, eval_key(seed), n)` replays them."""
+    import jax
+
+    return jax.random.fold_in(jax.random.key(seed), 0)
+
+
 def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label: str | None = None) -> list[Episode]:
     """Play `n_episodes` episodes of `policy` in `env` (one jitted scan, batched) and return them as `Episode`s.
 
     `policy` follows the `tgrf_jax.policies` interface (baselines or `LearnedPolicy`). Each episode runs until it
-    ends (success, collision or the time limit).
+    ends (success, collision or the time limit). Keys and step order are those of `tgrf_jax.evaluate.run_episodes`,
+    so the same key gives the same episodes; use `eval_key(seed)` to replay what `evaluate` / `tgrf-eval` played.
     """
     import jax
 
@@ -571,7 +580,7 @@ def plot_reward_terms(ep: Episode, *, title: str | None = None):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(10, 6.4), layout="constrained")
+    fig = Figure(figsize=(11, 6.4), layout="constrained")
     FigureCanvasAgg(fig)
     ax_step, ax_cum = fig.subplots(2, 1, sharex=True, height_ratios=(1.2, 1))
     t = np.arange(1, ep.steps + 1) * ep.dt
@@ -587,9 +596,12 @@ def plot_reward_terms(ep: Episode, *, title: str | None = None):
         neg_base += down
     ax_step.plot(t, ep.reward, color="black", linewidth=1.0, marker=".", markersize=3, label="total r_t")
     ax_step.axhline(0, color="#444444", linewidth=0.6)
+    lo = min(neg_base.min(initial=0.0), ep.reward.min(initial=0.0))
+    hi = max(pos_base.max(initial=0.0), ep.reward.max(initial=0.0))
+    pad = 0.08 * max(hi - lo, 1e-3)
+    ax_step.set_ylim(lo - pad, hi + pad)
     ax_step.set_ylabel("reward per step")
-    ax_step.margins(y=0.08)
-    ax_step.legend(ncol=len(names) + 1, fontsize=8.5, loc="lower left")
+    ax_step.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     ax_step.grid(alpha=0.3)
     for n in names:
         ax_cum.plot(t, np.cumsum(ep.terms[n]), color=TERM_COLORS[n], linewidth=1.8, label=TERM_LABELS[n])
@@ -598,7 +610,7 @@ def plot_reward_terms(ep: Episode, *, title: str | None = None):
     ax_cum.set_xlabel("time (s)")
     ax_cum.set_ylabel("cumulative reward")
     ax_cum.grid(alpha=0.3)
-    ax_cum.legend(fontsize=8.5, loc="best")
+    ax_cum.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     fig.suptitle(title or f"{ep.label}, episode {ep.index}: {ep.outcome} after {ep.duration:.2f} s, "
                  f"return {ep.ret:+.2f}")
     return fig
@@ -623,7 +635,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", action="append", choices=POLICY_CHOICES, help="baseline robot (repeatable)")
     p.add_argument("--episodes", type=int, default=1, help="episodes per policy (default 1)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--seed", type=int, default=0, help="episodes are those of tgrf-eval --seed S (default 0)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="episode i is episode i of tgrf-eval --seed S with as many episodes (default 0)")
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to render; default latest")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set env.num_humans=10")
@@ -741,7 +754,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for label, slug, policy in policies:
         start = time.perf_counter()
         print(f"{label}: recording {args.episodes} episode(s) ...", flush=True)
-        episodes = record_episodes(env, policy, jax.random.key(args.seed), args.episodes, label=label)
+        episodes = record_episodes(env, policy, eval_key(args.seed), args.episodes, label=label)
         print(f"  recorded in {time.perf_counter() - start:.1f} s (compile included)", flush=True)
         for ep in episodes:
             t0 = time.perf_counter()
