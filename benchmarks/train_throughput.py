@@ -25,12 +25,13 @@ from tgrf_jax.train import make_train
 
 
 def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,
-            breakdown: bool, repeats: int) -> dict:
+            breakdown: bool, repeats: int, epochs: int, minibatches: int) -> dict:
     cfg = TrainConfig.from_dict({
         "env": {"num_humans": 20, "human_policy": human_policy, "predictor": "const_vel"},
         "network": {"name": name, "size": size},
-        "ppo": {"num_envs": num_envs, "num_steps": num_steps, "num_minibatches": 2 if num_envs % 2 == 0 else 1,
-                "update_epochs": 5, "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
+        "ppo": {"num_envs": num_envs, "num_steps": num_steps,
+                "num_minibatches": minibatches if num_envs % minibatches == 0 else 1,
+                "update_epochs": epochs, "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
     })
     t = make_train(cfg)
     tr = t.trainer
@@ -50,6 +51,7 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
     run_s = sorted(runs)[len(runs) // 2]
     out = {
         "network": name, "size": size, "num_envs": num_envs, "num_steps": num_steps, "human_policy": human_policy,
+        "update_epochs": cfg.ppo.update_epochs, "num_minibatches": cfg.ppo.num_minibatches,
         "params": tr.net.num_params(state.params), "updates_per_call": updates, "compile_s": round(compile_s, 2),
         "update_s": round(run_s / updates, 5), "train_sps": round(steps / run_s, 1),
     }
@@ -85,6 +87,11 @@ def main(argv=None):
     parser.add_argument("--human-policy", default="orca", choices=["orca", "social_force"])
     parser.add_argument("--envs", type=int, nargs="*", help="env counts (default: 64 256 1024; quick: 64)")
     parser.add_argument("--nets", nargs="*", help="name/size pairs, e.g. hh_attn/small mlp/small")
+    default_ppo = TrainConfig().ppo
+    parser.add_argument("--epochs", type=int, default=default_ppo.update_epochs,
+                        help="PPO epochs per update (default: the embedded default config's)")
+    parser.add_argument("--minibatches", type=int, default=default_ppo.num_minibatches,
+                        help="minibatches per epoch (default: the embedded default config's)")
     args = parser.parse_args(argv)
     if args.quick:
         nets = args.nets or ["hh_attn/small"]
@@ -102,7 +109,8 @@ def main(argv=None):
         for n in envs:
             if size == "paper" and name == "hh_attn" and n > 256 and not args.envs:
                 continue  # minutes per point on 2 cores
-            r = measure(name, size, n, args.human_policy, num_steps, updates, breakdown, repeats)
+            r = measure(name, size, n, args.human_policy, num_steps, updates, breakdown, repeats, args.epochs,
+                        args.minibatches)
             results.append(r)
             print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} {r.get('env_s', 0):>7.3f} "
                   f"{r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f}", flush=True)

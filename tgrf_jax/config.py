@@ -373,6 +373,7 @@ class PPOConfig:
     anneal_lr: bool = spec(False, doc="linear learning-rate decay to 0 over the run")
     clip_value: bool = spec(True, doc="clip the value update like the policy ratio (reference: on)")
     norm_adv: bool = spec(True, doc="normalise advantages over the whole rollout batch")
+    norm_value: bool = spec(True, doc="critic predicts returns standardised by running statistics (reference: off)")
     adam_eps: float = spec(1e-5, low=0.0, low_inclusive=False)
     # --- numeric (traced hyper-parameters)
     lr: float = spec(3e-4, low=0.0, low_inclusive=False, high=1.0)

@@ -104,13 +104,15 @@ class ActorCritic:
     def _step(self, params, carry, obs: Obs, resets):
         if resets is not None:
             carry = reset_carry(carry, jnp.asarray(resets, bool))
-        if self.frame == "world":
-            return self.module.apply(params, carry, obs)
-        local, axes = to_goal_frame(obs)
-        carry, (mean, log_std, value) = self.module.apply(params, carry, local)
-        if self.rotate_action:
-            mean = action_to_world(mean, axes)
-        return carry, (mean, log_std, value)
+        obs, axes = self._to_frame(obs)
+        carry, (mean, log_std, value) = self.module.apply(params, carry, obs)
+        return carry, (self._action_to_world(mean, axes), log_std, value)
+
+    def _to_frame(self, obs: Obs):
+        return (obs, None) if self.frame == "world" else to_goal_frame(obs)
+
+    def _action_to_world(self, mean, axes):
+        return action_to_world(mean, axes) if self.rotate_action else mean
 
     def _dist(self, mean, log_std):
         return distrax.MultivariateNormalDiag(mean, jnp.broadcast_to(jnp.exp(log_std), mean.shape))
@@ -122,16 +124,32 @@ class ActorCritic:
         return carry, self._dist(mean, log_std), value
 
     def apply_sequence(self, params, carry0, obs_seq: Obs, resets_seq):
-        """Time-major sequence: obs (T, B, ...), resets (T, B) bool. Returns (carry_T, pi [(T, B)], values (T, B))."""
+        """Time-major sequence: obs (T, B, ...), resets (T, B) bool. Returns (carry_T, pi [(T, B)], values (T, B)).
+
+        Modules split into encode / recur / decode (HH Attn, MLP) run the encoder and decoder once over all T x B
+        inputs and scan only the recurrent cell; others (DS-RNN, whose attention reads recurrent edge states) scan
+        the whole step. Both equal the step-by-step `apply` up to float rounding."""
         self._check_obs(obs_seq, batch_ndim=2)
+        resets_seq = jnp.asarray(resets_seq, bool)
+        if hasattr(self.module, "encode"):
+            obs_seq, axes = self._to_frame(obs_seq)
+            x = self.module.apply(params, obs_seq, method="encode")
 
-        def body(carry, xs):
-            obs, resets = xs
-            carry, (mean, _, value) = self._step(params, carry, obs, resets)
-            return carry, (mean, value)
+            def recur(carry, xs):
+                x_t, resets = xs
+                return self.module.apply(params, reset_carry(carry, resets), x_t, method="recur")
 
-        carry_T, (means, values) = jax.lax.scan(body, carry0, (obs_seq, jnp.asarray(resets_seq, bool)))
-        log_std = params["params"]["heads"]["log_std"]  # state-independent: the same at every step
+            carry_T, y = jax.lax.scan(recur, carry0, (x, resets_seq))
+            means, log_std, values = self.module.apply(params, y, method="decode")
+            means = self._action_to_world(means, axes)
+        else:
+            def body(carry, xs):
+                obs, resets = xs
+                carry, (mean, _, value) = self._step(params, carry, obs, resets)
+                return carry, (mean, value)
+
+            carry_T, (means, values) = jax.lax.scan(body, carry0, (obs_seq, resets_seq))
+            log_std = params["params"]["heads"]["log_std"]  # state-independent: the same at every step
         return carry_T, self._dist(means, log_std), values
 
 

@@ -27,12 +27,14 @@ class MLPNet(nn.Module):
     def initialize_carry(self, batch_size: int):
         return {"dummy": jnp.zeros((batch_size, 1), jnp.float32)}
 
-    @nn.compact
-    def __call__(self, carry, obs):
+    def setup(self):
+        self.heads = ActorCriticHeads((self.hidden, self.hidden), self.action_dim)
+
+    def encode(self, obs):
         mask = obs.human_mask.astype(bool)
         humans = masked_humans(obs.humans.astype(jnp.float32), mask)
         batch = humans.shape[:-2]
-        x = jnp.concatenate(
+        return jnp.concatenate(
             [
                 obs.robot_vel.astype(jnp.float32),
                 obs.robot_node.astype(jnp.float32),
@@ -41,5 +43,13 @@ class MLPNet(nn.Module):
             ],
             axis=-1,
         )
-        mean, log_std, value = ActorCriticHeads((self.hidden, self.hidden), self.action_dim, name="heads")(x)
-        return carry, (mean, log_std, value)
+
+    def recur(self, carry, x):
+        return carry, x  # no memory
+
+    def decode(self, x):
+        return self.heads(x)
+
+    def __call__(self, carry, obs):
+        carry, x = self.recur(carry, self.encode(obs))
+        return carry, self.decode(x)

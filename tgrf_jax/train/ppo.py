@@ -45,6 +45,49 @@ class HParams:
 
 
 @struct.dataclass
+class ReturnStats:
+    """Running mean and variance of value targets (exponential moving averages with bias correction).
+
+    With `ppo.norm_value` the critic head predicts (return - mean) / std. Crowd-navigation returns span about
+    -20 to +25, so an unnormalised value loss is ~100x larger than the policy loss, dominates the gradient of the
+    shared torso and saturates gradient clipping; standardised targets keep the two losses comparable while GAE
+    and bootstrapping still work in reward units."""
+
+    mean: jnp.ndarray
+    mean_sq: jnp.ndarray
+    weight: jnp.ndarray  # bias correction: 1 - decay^n after n updates
+
+    DECAY = 0.99
+
+    @classmethod
+    def create(cls):
+        z = jnp.zeros((), jnp.float32)
+        return cls(mean=z, mean_sq=z, weight=z)
+
+    def update(self, targets):
+        d = self.DECAY
+        return ReturnStats(
+            mean=d * self.mean + (1 - d) * jnp.mean(targets),
+            mean_sq=d * self.mean_sq + (1 - d) * jnp.mean(jnp.square(targets)),
+            weight=d * self.weight + (1 - d),
+        )
+
+    def moments(self):
+        w = jnp.maximum(self.weight, 1e-6)
+        mean = jnp.where(self.weight > 0, self.mean / w, 0.0)
+        var = jnp.where(self.weight > 0, self.mean_sq / w - jnp.square(mean), 1.0)
+        return mean, jnp.sqrt(jnp.maximum(var, 1e-4))
+
+    def denormalize(self, v):
+        mean, std = self.moments()
+        return v * std + mean
+
+    def normalize(self, x):
+        mean, std = self.moments()
+        return (x - mean) / std
+
+
+@struct.dataclass
 class TrainState:
     """Complete state of a run between updates (checkpoint this and a resumed run is bit-identical)."""
 
@@ -55,6 +98,7 @@ class TrainState:
     carry: dict  # recurrent state before processing `obs`
     resets: jnp.ndarray  # (B,) bool: `obs` starts a new episode (the previous step ended one)
     ep_return: jnp.ndarray  # (B,) return of the running episode so far
+    return_stats: ReturnStats  # value-target statistics (used when ppo.norm_value)
     key: jnp.ndarray  # raw uint32 PRNG key
     update: jnp.ndarray  # () int32 updates done
     hparams: HParams
@@ -116,9 +160,16 @@ def compute_gae(rewards, values, dones, truncated, final_values, last_value, gam
 
 
 def ppo_loss(net: ActorCritic, params, carry0, batch: Transition, advantages, returns, hp: HParams,
-             clip_value: bool):
-    """Clipped PPO loss of one minibatch of whole sequences (T, b), replayed from carry0 (b,)."""
+             clip_value: bool, value_stats: ReturnStats | None = None):
+    """Clipped PPO loss of one minibatch of whole sequences (T, b), replayed from carry0 (b,).
+
+    With `value_stats` the critic's output is a standardised value: targets and the rollout's values (stored in
+    reward units) are standardised with the same statistics before the (clipped) value loss."""
     _, pi, values = net.apply_sequence(params, carry0, batch.obs, batch.resets)
+    old_values = batch.value
+    if value_stats is not None:
+        returns = value_stats.normalize(returns)
+        old_values = value_stats.normalize(old_values)
     log_prob = pi.log_prob(batch.action)
     ratio = jnp.exp(log_prob - batch.log_prob)
     pg1 = ratio * advantages
@@ -126,7 +177,7 @@ def ppo_loss(net: ActorCritic, params, carry0, batch: Transition, advantages, re
     pg_loss = -jnp.mean(jnp.minimum(pg1, pg2))
     sq = jnp.square(values - returns)
     if clip_value:
-        v_clipped = batch.value + jnp.clip(values - batch.value, -hp.clip_eps, hp.clip_eps)
+        v_clipped = old_values + jnp.clip(values - old_values, -hp.clip_eps, hp.clip_eps)
         sq = jnp.maximum(sq, jnp.square(v_clipped - returns))
     vf_loss = 0.5 * jnp.mean(sq)
     entropy = jnp.mean(pi.entropy())
@@ -183,6 +234,7 @@ class Trainer:
             carry=self.net.initialize_carry(p.num_envs),
             resets=jnp.ones((p.num_envs,), bool),
             ep_return=jnp.zeros((p.num_envs,), jnp.float32),
+            return_stats=ReturnStats.create(),
             key=key,
             update=jnp.zeros((), jnp.int32),
             hparams=hparams,
@@ -199,11 +251,13 @@ class Trainer:
         p = self.config.ppo
         net, env, hp = self.net, self.env, ts.hparams
         step_env = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+        to_reward_units = ts.return_stats.denormalize if p.norm_value else (lambda v: v)
 
         def env_step(runner, k):
             env_state, obs, carry, resets, ep_return = runner
             k_act, k_env = jax.random.split(k)
             carry, pi, value = net.apply(ts.params, carry, obs, resets)
+            value = to_reward_units(value)
             action = pi.sample(seed=k_act)
             log_prob = pi.log_prob(action)
             next_obs, env_state, reward, terminated, truncated, info = step_env(
@@ -214,7 +268,7 @@ class Trainer:
             # Bootstrap value of truncated episodes: V(final_obs) with the carry after this step. Only computed
             # when some env truncated (rare: once per 200 steps at most).
             def final_values(_):
-                return net.apply(ts.params, carry, info.final_obs, None)[2]
+                return to_reward_units(net.apply(ts.params, carry, info.final_obs, None)[2])
 
             final_value = jax.lax.cond(jnp.any(truncated), final_values,
                                        lambda _: jnp.zeros_like(value), None)
@@ -233,7 +287,7 @@ class Trainer:
         runner = (ts.env_state, ts.obs, ts.carry, ts.resets, ts.ep_return)
         runner, (traj, ep) = jax.lax.scan(env_step, runner, jax.random.split(key, p.num_steps))
         env_state, obs, carry, resets, ep_return = runner
-        last_value = net.apply(ts.params, carry, obs, resets)[2]
+        last_value = to_reward_units(net.apply(ts.params, carry, obs, resets)[2])
         carry0 = ts.carry
         ts = ts.replace(env_state=env_state, obs=obs, carry=carry, resets=resets, ep_return=ep_return)
         ep = {k: jnp.sum(v).astype(jnp.float32) for k, v in ep.items()}
@@ -252,6 +306,8 @@ class Trainer:
                                    last_value, hp.gamma, hp.gae_lambda)
         if p.norm_adv:
             adv = (adv - adv.mean()) / (adv.std() + 1e-5)
+        return_stats = ts.return_stats.update(returns) if p.norm_value else ts.return_stats
+        value_stats = return_stats if p.norm_value else None
 
         # --- learning rate (optional linear decay to 0 over the run)
         if p.anneal_lr:
@@ -267,7 +323,7 @@ class Trainer:
         def minibatch_step(carry, mb):
             params, opt_state = carry
             c0, batch, a, r = mb
-            (loss, aux), grads = loss_grad(self.net, params, c0, batch, a, r, hp, p.clip_value)
+            (loss, aux), grads = loss_grad(self.net, params, c0, batch, a, r, hp, p.clip_value, value_stats)
             grads, g_norm = clip_by_global_norm(grads, hp.max_grad_norm)
             updates, opt_state = self._adam.update(grads, opt_state, params)
             params = optax.apply_updates(params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
@@ -293,7 +349,8 @@ class Trainer:
         )
         metrics = {k: jnp.mean(v) for k, v in losses.items()}
         metrics.update(ep, lr=jnp.asarray(lr, jnp.float32), reward_mean=jnp.mean(traj.reward))
-        ts = ts.replace(params=params, opt_state=opt_state, key=key, update=ts.update + 1)
+        ts = ts.replace(params=params, opt_state=opt_state, return_stats=return_stats, key=key,
+                        update=ts.update + 1)
         return ts, metrics
 
     # --------------------------------------------------------------------------------------- chunks / train
