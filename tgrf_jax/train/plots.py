@@ -1,4 +1,7 @@
-"""Learning-curve figure from a run's metrics CSV (matplotlib, Agg backend, no display needed)."""
+"""Learning-curve figure from a run's metrics CSV.
+
+Figures are built on their own Agg canvas rather than through pyplot, so writing a PNG neither needs a display
+nor switches the backend of a Jupyter session that called the trainer."""
 
 from __future__ import annotations
 
@@ -12,14 +15,14 @@ def read_metrics(path) -> list[dict]:
 
 
 def plot_learning_curve(csv_path, png_path, title: str = "") -> pathlib.Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     rows = read_metrics(csv_path)
     png_path = pathlib.Path(png_path)
-    fig, (ax_ret, ax_rate, ax_loss) = plt.subplots(1, 3, figsize=(15, 4))
+    fig = Figure(figsize=(15, 4))
+    FigureCanvasAgg(fig)
+    ax_ret, ax_rate, ax_loss = fig.subplots(1, 3)
     if rows:
         steps = [r["env_steps"] for r in rows]
         ax_ret.plot(steps, [r["episode_return"] for r in rows], color="C0")
@@ -40,5 +43,4 @@ def plot_learning_curve(csv_path, png_path, title: str = "") -> pathlib.Path:
     fig.tight_layout()
     png_path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png_path, dpi=100)
-    plt.close(fig)
     return png_path
