@@ -821,10 +821,18 @@ def format_summary_markdown(spec: SweepSpec, summary: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def plot_sweep(sweep_dir, spec: SweepSpec, summary: list[dict]) -> list[pathlib.Path]:
-    import matplotlib
+def _figure(figsize, ncols: int):
+    """A figure on its own Agg canvas (no pyplot: no display needed, a Jupyter session's backend is left alone)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(1, ncols, squeeze=False)[0]
+
+
+def plot_sweep(sweep_dir, spec: SweepSpec, summary: list[dict]) -> list[pathlib.Path]:
+    """learning_curves.png, plus heatmap.png (two multi-valued axes) or grid_metrics.png (one)."""
     sweep_dir = pathlib.Path(sweep_dir)
     out = [plot_learning_curves(sweep_dir, spec)]
     multi = [a for a in spec.axes if len(a.values) > 1]
@@ -845,10 +853,8 @@ def _title(m: str) -> str:
 
 def plot_heatmap(path, spec: SweepSpec, summary, ax_y: GridAxis, ax_x: GridAxis, metrics) -> pathlib.Path:
     """Mean over seeds of each metric over two gridded parameters (other axes: their single value)."""
-    import matplotlib.pyplot as plt
-
-    fig, axs = plt.subplots(1, len(metrics), figsize=(4.8 * len(metrics), 4.2), squeeze=False)
-    for ax, m in zip(axs[0], metrics):
+    fig, axs = _figure((4.8 * len(metrics), 4.2), len(metrics))
+    for ax, m in zip(axs, metrics):
         mean = np.full((len(ax_y.values), len(ax_x.values)), np.nan)
         std = np.full_like(mean, np.nan)
         for row in summary:
@@ -872,16 +878,13 @@ def plot_heatmap(path, spec: SweepSpec, summary, ax_y: GridAxis, ax_x: GridAxis,
     fig.suptitle(f"mean over {len(spec.seeds)} seed(s)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return pathlib.Path(path)
 
 
 def plot_grid_metrics(path, spec: SweepSpec, summary, axis: GridAxis, metrics) -> pathlib.Path:
-    import matplotlib.pyplot as plt
-
-    fig, axs = plt.subplots(1, len(metrics), figsize=(4.5 * len(metrics), 3.8), squeeze=False)
+    fig, axs = _figure((4.5 * len(metrics), 3.8), len(metrics))
     xs = np.arange(len(axis.values))
-    for ax, m in zip(axs[0], metrics):
+    for ax, m in zip(axs, metrics):
         mean = [next(r[f"{m}_mean"] for r in summary if r[axis.name] == v) for v in axis.values]
         std = [next(r[f"{m}_std"] for r in summary if r[axis.name] == v) for v in axis.values]
         ax.errorbar(xs, mean, yerr=np.nan_to_num(std), marker="o", capsize=3)
@@ -891,19 +894,18 @@ def plot_grid_metrics(path, spec: SweepSpec, summary, axis: GridAxis, metrics) -
     fig.suptitle(f"mean ± std over {len(spec.seeds)} seed(s)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return pathlib.Path(path)
 
 
 def plot_learning_curves(sweep_dir, spec: SweepSpec) -> pathlib.Path:
     """Training return and success rate per grid point: mean over seeds, band = ± std over seeds."""
-    import matplotlib.pyplot as plt
+    import matplotlib
 
     sweep_dir = pathlib.Path(sweep_dir)
     rows = _read_csv(sweep_dir / METRICS_FILE)
-    fig, (ax_ret, ax_sr) = plt.subplots(1, 2, figsize=(13, 4.5))
+    fig, (ax_ret, ax_sr) = _figure((13, 4.5), 2)
     points = spec.points()
-    cmap = plt.get_cmap("viridis" if len(points) > 10 else "tab10")
+    cmap = matplotlib.colormaps["viridis" if len(points) > 10 else "tab10"]
     for p, values in enumerate(points):
         color = cmap(p / max(len(points) - 1, 1)) if len(points) > 10 else cmap(p % 10)
         by_seed = {}
@@ -936,7 +938,6 @@ def plot_learning_curves(sweep_dir, spec: SweepSpec) -> pathlib.Path:
     fig.tight_layout()
     path = sweep_dir / CURVES_FILE
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path
 
 
