@@ -134,7 +134,8 @@ def test_sweep_artifacts(sweep):
 
 def test_run_in_sweep_matches_tgrf_train(sweep, tmp_path):
     """The same config and seed trained alone by tgrf-train's loop: same chunks, same episodes and outcomes, and
-    parameters / losses / returns equal up to float32 rounding (the batched program is compiled differently)."""
+    parameters / losses / returns equal up to float32 rounding (the batched program is compiled differently);
+    bit-identical when the sweep holds only that run."""
     run_dir = sweep / "runs" / RUN
     alone_cfg = TrainConfig.from_yaml(TINY, ["reward.h_disc=2.5", "reward.sigma_disc=0.2", "run.seed=1",
                                               "run.eval_episodes=8"])
@@ -147,6 +148,15 @@ def test_run_in_sweep_matches_tgrf_train(sweep, tmp_path):
     _assert_states(alone.state, in_sweep, exact=False)
     _assert_curves(tmp_path / "alone" / "metrics.csv", run_dir / "metrics.csv", exact=False)
     _assert_evals(tmp_path / "alone" / "eval.json", run_dir / "eval.json", exact=False)
+
+    # A device holding a single run runs tgrf-train's unbatched program: a one-run sweep is bit-identical.
+    single = SweepSpec.create(TINY, ["reward.h_disc=2.5", "reward.sigma_disc=0.2"], "1,", ["run.eval_episodes=8"])
+    res = run_sweep(single, tmp_path / "single", log=lambda m: None)
+    _assert_states(alone.state, jax.tree_util.tree_map(lambda x: x[0], res.state), exact=True)
+    single_dir = tmp_path / "single" / "runs" / "p000_h_disc=2.5_sigma_disc=0.2_seed=1"
+    _assert_curves(tmp_path / "alone" / "metrics.csv", single_dir / "metrics.csv", exact=True)
+    # (evaluation only up to rounding: tgrf-train's evaluate bakes the parameters into the program as constants)
+    _assert_evals(tmp_path / "alone" / "eval.json", single_dir / "eval.json", exact=False)
 
 
 def test_resume_after_interruption_matches_uninterrupted(sweep, tmp_path):

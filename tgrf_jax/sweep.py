@@ -366,12 +366,30 @@ def _take(tree, i):
     return jax.tree_util.tree_map(lambda x: x[i], tree)
 
 
+def _per_run(f, n_batched: int | None = None):
+    """f over the leading (run) axis of the first `n_batched` arguments (default: all): vmapped, except where a
+    device holds a single run, which runs f itself (tgrf-train's unbatched program, without vmap's overheads,
+    e.g. a `lax.cond` turned into a select that evaluates both branches)."""
+    import jax
+
+    def g(*args):
+        k = len(args) if n_batched is None else n_batched
+        batched, rest = args[:k], args[k:]
+        if jax.tree_util.tree_leaves(batched)[0].shape[0] == 1:
+            out = f(*jax.tree_util.tree_map(lambda x: x[0], batched), *rest)
+            return jax.tree_util.tree_map(lambda x: x[None], out)
+        return jax.vmap(f, in_axes=(0,) * k + (None,) * len(rest))(*batched, *rest)
+
+    return g
+
+
 class SweepProgram:
     """The compiled pieces of a sweep for one static configuration and one device mesh.
 
     `chunk(state, n)` and `eval_stats(params, env_params, key, n_episodes)` take and return pytrees with a leading
-    run axis split over the mesh; inside `shard_map` each device vmaps over its own runs, so the runs never
-    communicate. `init_one(key, hparams)` is tgrf-train's single-run init.
+    run axis split over the mesh; inside `shard_map` each device vmaps over its own runs (or, holding one run, runs
+    the unbatched function), so the runs never communicate. `init_one(key, hparams)` is tgrf-train's single-run
+    init.
     """
 
     def __init__(self, config: TrainConfig, devices):
@@ -404,7 +422,7 @@ class SweepProgram:
         self.init_one = jax.jit(trainer.init)
 
         def chunk(ts, n_updates):
-            return smap(jax.vmap(functools.partial(trainer.run_updates, n_updates=n_updates)), 1)(ts)
+            return smap(_per_run(functools.partial(trainer.run_updates, n_updates=n_updates)), 1)(ts)
 
         self.chunk = jax.jit(chunk, static_argnums=1, donate_argnums=0)
         net = trainer.net
@@ -414,7 +432,7 @@ class SweepProgram:
             def one(p, ep, k):
                 return run_episodes(self.eval_env, LearnedPolicy(net, p), k, n_episodes, ep)
 
-            return smap(jax.vmap(one, in_axes=(0, 0, None)), 2, replicated_last=True)(params, env_params, key)
+            return smap(_per_run(one, n_batched=2), 2, replicated_last=True)(params, env_params, key)
 
         self.eval_stats = jax.jit(eval_stats, static_argnums=3)
         self.compiled: dict[tuple, Any] = {}  # (n_updates, G_pad) -> AOT-compiled chunk
