@@ -8,6 +8,7 @@ all G runs share one set of static choices (shapes, network, env code paths) and
 
     state = stack([jit(trainer.init)(key_i, hparams_i) for each run])   # tgrf-train's init, run by run
     chunk = jit(shard_map(vmap(trainer.run_updates)))   # n updates of all G runs, one compiled program
+                                                        # (a device holding one run: run_updates unbatched)
 
 with the run axis split over all devices (`jax.sharding.Mesh` with one axis, "runs"; G is padded to a multiple
 of the device count with copies of the last run, and the padding is dropped from every result). Chunk lengths
@@ -20,8 +21,10 @@ Run i of a sweep is the tgrf-train run of its own config (the base config with t
 `run.seed` = its seed, written to `runs/<name>/config.yaml`): same `HParams` (built by `hparams_from_config`
 from that config), same key (`jax.random.PRNGKey(run.seed)`), same chunking and the same evaluation. The
 batched program is compiled differently from the single-run one, so the two agree up to float32 rounding
-(about 1e-6 after a dozen updates on configs/tiny.yaml, Social Force and ORCA alike), not bit for bit; a sweep
-is itself deterministic, and a resumed sweep is bit-identical to an uninterrupted one.
+(parameters within ~1e-6, the whole state within ~1e-5 after 12 updates of configs/tiny.yaml, Social Force and
+ORCA alike), not bit for bit; so do different device counts. Bit-identical: a one-run sweep and the tgrf-train
+run, a resumed sweep and an uninterrupted one, and equal numbers of runs per device (e.g. 2 hosts x 2 devices
+and 1 host x 4 devices).
 
 Sweep directory:
     sweep.yaml             the grid: axes, seeds, base config, and the run list (name, grid point, seed, values)
