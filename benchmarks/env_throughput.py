@@ -2,8 +2,9 @@
 
 Each measurement runs a compiled `lax.scan` of T auto-reset steps over B parallel environments, with
 constant-velocity predictions (K = 5), the TGRF reward and a straight-to-goal robot, and reports B * T / time
-(compile time separately). In the same run, Python-RVO2's raw 20-agent doStep rate is timed as the on-machine
-reference for a compiled ORCA step.
+(compile time separately). For batches of 16 and more it also times `CrowdNavEnv.step_batch`, the trainer's
+auto-reset, which samples B / 8 fresh episodes per step instead of B (`ppo.reset_slots`). In the same run,
+Python-RVO2's raw 20-agent doStep rate is timed as the on-machine reference for a compiled ORCA step.
 
     python -m benchmarks.env_throughput --quick --out bench_results/env_quick.json
     python -m benchmarks.env_throughput --out bench_results/env_full.json
@@ -21,14 +22,18 @@ from tgrf_jax import CrowdNavEnv
 from tgrf_jax.policies import StraightPolicy
 
 
-def make_runner(env: CrowdNavEnv, n_steps: int):
+def make_runner(env: CrowdNavEnv, n_steps: int, num_resets: int | None = None):
+    """A jitted scan of n_steps auto-reset steps: per-env resets (`step`), or `step_batch` with num_resets."""
     params = env.default_params
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
     act = jax.vmap(StraightPolicy.action)
 
     def body(carry, key):
         obs, state = carry
-        obs, state, reward, *_ = step(jax.random.split(key, obs.robot_node.shape[0]), state, act(obs), params)
+        if num_resets is None:
+            obs, state, reward, *_ = step(jax.random.split(key, obs.robot_node.shape[0]), state, act(obs), params)
+        else:
+            obs, state, reward, *_ = env.step_batch(key, state, act(obs), params, num_resets)
         return (obs, state), reward.mean()
 
     @jax.jit
@@ -44,10 +49,16 @@ def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int
     keys = jax.random.split(jax.random.key(0), batch)
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     compile_s, run_s = time_call(run, jax.random.key(1), obs, state, repeats=repeats)
-    return {
+    row = {
         "policy": policy, "num_humans": num_humans, "batch": batch, "steps_per_call": n_steps,
         "compile_s": round(compile_s, 3), "run_s": round(run_s, 5), "env_steps_per_s": batch * n_steps / run_s,
     }
+    if batch >= 16:
+        row["reset_slots"] = batch // 8
+        run_batched, _ = make_runner(env, n_steps, batch // 8)
+        _, run_s = time_call(run_batched, jax.random.key(1), obs, state, repeats=repeats)
+        row["step_batch_env_steps_per_s"] = batch * n_steps / run_s
+    return row
 
 
 def breakdown(policy: str, num_humans: int, batch: int, repeats: int) -> dict:
@@ -79,7 +90,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     if args.quick:
-        grid = [(p, 20, b) for p in ("orca", "social_force") for b in (1, 1024)]
+        grid = [(p, 20, b) for p in ("orca", "social_force") for b in (1, 128, 1024)]
         repeats = 2
     else:
         grid = [(p, n, b) for p in ("orca", "social_force") for n in (5, 10, 20, 50)
@@ -88,12 +99,14 @@ def main(argv=None):
     info = machine_info()
     print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")
     rows = []
-    print(f"{'policy':>13} {'humans':>6} {'batch':>6} {'compile s':>9} {'env-steps/s':>12}")
+    print(f"{'policy':>13} {'humans':>6} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} {'step_batch':>12}")
     for policy, n, batch in grid:
         n_steps = 200 if batch <= 16 else 50 if batch <= 1024 else 20
         row = measure(policy, n, batch, n_steps, repeats)
         rows.append(row)
-        print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {row['env_steps_per_s']:>12,.0f}", flush=True)
+        batched = f"{row['step_batch_env_steps_per_s']:>12,.0f}" if "reset_slots" in row else f"{'-':>12}"
+        print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {row['env_steps_per_s']:>12,.0f} {batched}",
+              flush=True)
 
     from benchmarks.orca_throughput import rvo2_dostep_rate
 

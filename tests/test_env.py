@@ -180,3 +180,43 @@ def test_unicycle_kinematics_limits():
     _, s2, reward, *_ = env.step_env(jax.random.key(0), s1, jnp.array([-5.0, 0.0]), params)
     assert float(s2.robot.speed) == pytest.approx(-0.013, abs=1e-6)
     assert float(reward) < 0  # backwards motion is penalised
+
+
+@pytest.mark.parametrize("num_resets", [1, 4, 64])
+def test_step_batch_shares_fresh_episodes_among_finished_envs(num_resets):
+    env = make_env(num_humans=20, predictor="none")
+    params = env.default_params
+    n_envs, n_steps = 32, 40
+    act = jax.vmap(to_goal)
+
+    @jax.jit
+    def run(key):
+        obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, n_envs), params)
+
+        def body(carry, k):
+            obs, state = carry
+            obs2, state2, reward, term, trunc, info = env.step_batch(k, state, act(obs), params, num_resets)
+            return (obs2, state2), (state, state2, obs2, term | trunc)
+
+        return jax.lax.scan(body, (obs, state), jax.random.split(jax.random.fold_in(key, 1), n_steps))[1]
+
+    before, after, obs, done = run(jax.random.key(7))
+    done = np.asarray(done)
+    assert done.sum() > 10  # straight to goal through 20 humans: plenty of collisions
+    steps_before, steps_after = np.asarray(before.step_count), np.asarray(after.step_count)
+    np.testing.assert_array_equal(steps_after, np.where(done, 0, steps_before + 1))
+    start = np.asarray(after.robot.pos)
+    goal = np.asarray(after.robot.goal)
+    assert np.all(np.linalg.norm(start - goal, axis=-1)[done] >= 8.0)  # finished envs hold fresh episodes
+    np.testing.assert_allclose(np.asarray(obs.robot_node)[..., :2], start, atol=1e-6)
+    shared_seen = False
+    for t in np.nonzero(done.sum(axis=1) >= 2)[0]:
+        fresh = start[t][done[t]]
+        distinct = len({tuple(p) for p in fresh.round(5)})
+        if done[t].sum() <= num_resets:
+            assert distinct == len(fresh)  # each finished env got its own fresh episode
+        else:
+            assert distinct == num_resets  # beyond num_resets the fresh episodes are shared round-robin
+            shared_seen = True
+    if num_resets == 1:
+        assert shared_seen

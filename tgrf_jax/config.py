@@ -370,6 +370,9 @@ class PPOConfig:
     total_steps: int = spec(1_500_000, low=1, doc="environment steps of the whole run")
     update_epochs: int = spec(2, low=1, high=1000, doc="reference: 5; 2 halves the learner time")
     num_minibatches: int = spec(2, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
+    reset_slots: int = spec(16, low=1, high=65536,
+                            doc="fresh episodes sampled per rollout step for the envs that finished in it "
+                                "(>= num_envs: one per env, as env.step; see CrowdNavEnv.step_batch)")
     anneal_lr: bool = spec(False, doc="linear learning-rate decay to 0 over the run")
     clip_value: bool = spec(True, doc="clip the value update like the policy ratio (reference: on)")
     norm_adv: bool = spec(True, doc="normalise advantages over the whole rollout batch")

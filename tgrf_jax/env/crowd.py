@@ -137,6 +137,35 @@ class CrowdNavEnv:
         obs = jax.tree_util.tree_map(pick, reset_obs, obs)
         return obs, next_state, reward, terminated, truncated, info
 
+    def step_batch(self, key, state: EnvState, action, params: EnvParams, num_resets: int):
+        """Step a batch of B environments (leading axis of `state` and `action`) with automatic reset, drawing
+        only `num_resets` fresh episodes per call instead of one per environment.
+
+        `step` pays for a reset in every environment on every step and keeps it only where an episode ended
+        (a few percent of steps); here `num_resets` fresh episodes are sampled once and the k-th environment
+        that finished in this call takes fresh episode k mod num_resets. With num_resets >= B every finished
+        episode is replaced by its own fresh one; with fewer, two environments finishing in the same step
+        beyond num_resets share a start state (they diverge from the next step on). Same returns as
+        `jax.vmap(step)`; `params` is shared by the batch.
+        """
+        num_envs = action.shape[0]
+        num_resets = max(1, min(int(num_resets), num_envs))
+        k_step, k_reset = jax.random.split(key)
+        obs, next_state, reward, terminated, truncated, info = jax.vmap(self.step_env, in_axes=(0, 0, 0, None))(
+            jax.random.split(k_step, num_envs), state, action, params)
+        reset_obs, reset_state = jax.vmap(self.reset_env, in_axes=(0, None))(
+            jax.random.split(k_reset, num_resets), params)
+        done = terminated | truncated
+        slot = (jnp.cumsum(done.astype(jnp.int32)) - 1) % num_resets
+
+        def pick(fresh, cont):
+            fresh = fresh[slot]
+            return jnp.where(done.reshape(done.shape + (1,) * (cont.ndim - 1)), fresh, cont)
+
+        next_state = jax.tree_util.tree_map(pick, reset_state, next_state)
+        obs = jax.tree_util.tree_map(pick, reset_obs, obs)
+        return obs, next_state, reward, terminated, truncated, info
+
     # ------------------------------------------------------------------ dynamics
     def reset_env(self, key, params: EnvParams) -> tuple[Obs, EnvState]:
         k_robot, k_humans = jax.random.split(key)

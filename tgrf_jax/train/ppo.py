@@ -250,7 +250,6 @@ class Trainer:
         episode sums)."""
         p = self.config.ppo
         net, env, hp = self.net, self.env, ts.hparams
-        step_env = jax.vmap(env.step, in_axes=(0, 0, 0, None))
         to_reward_units = ts.return_stats.denormalize if p.norm_value else (lambda v: v)
 
         def env_step(runner, k):
@@ -260,8 +259,8 @@ class Trainer:
             value = to_reward_units(value)
             action = pi.sample(seed=k_act)
             log_prob = pi.log_prob(action)
-            next_obs, env_state, reward, terminated, truncated, info = step_env(
-                jax.random.split(k_env, p.num_envs), env_state, action, hp.env
+            next_obs, env_state, reward, terminated, truncated, info = env.step_batch(
+                k_env, env_state, action, hp.env, p.reset_slots
             )
             done = terminated | truncated
 
