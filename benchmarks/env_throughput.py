@@ -3,7 +3,7 @@
 Each measurement runs a compiled `lax.scan` of T auto-reset steps over B parallel environments, with
 constant-velocity predictions (K = 5), the TGRF reward and a straight-to-goal robot, and reports B * T / time
 (compile time separately). For batches of 16 and more it also times `CrowdNavEnv.step_batch`, the trainer's
-auto-reset, which samples B / 8 fresh episodes per step instead of B (`ppo.reset_slots`). In the same run,
+auto-reset, which samples B / 8 fresh episodes per step instead of B (`ppo.reset_ratio: 8`). In the same run,
 Python-RVO2's raw 20-agent doStep rate is timed as the on-machine reference for a compiled ORCA step.
 
     python -m benchmarks.env_throughput --quick --out bench_results/env_quick.json

@@ -58,15 +58,13 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
     if breakdown:
         rollout = jax.jit(lambda s, k: tr.rollout(s, k)[1:])
         _, roll_s = time_call(rollout, state, jax.random.PRNGKey(1), repeats=repeats)
-        step_env = jax.vmap(tr.env.step, in_axes=(0, 0, 0, None))
-
         @jax.jit
         def env_only(state, key):
             def body(carry, k):
                 obs, env_state = carry
                 action = jnp.ones((num_envs, 2)) * 0.5
-                obs, env_state, reward, *_ = step_env(jax.random.split(k, num_envs), env_state, action,
-                                                      state.hparams.env)
+                obs, env_state, reward, *_ = tr.env.step_batch(k, env_state, action, state.hparams.env,
+                                                               cfg.ppo.reset_slots)
                 return (obs, env_state), reward.sum()
             return jax.lax.scan(body, (state.obs, state.env_state), jax.random.split(key, num_steps))[1]
 

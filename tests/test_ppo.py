@@ -267,5 +267,6 @@ def test_default_yaml_matches_embedded_default():
     assert (p.num_envs, p.num_steps, p.update_epochs, p.num_minibatches) == (16, 30, 5, 2)
     assert (p.clip_eps, p.clip_value, p.gamma, p.gae_lambda, p.lr, p.adam_eps) == (0.2, True, 0.99, 0.95, 4e-5, 1e-5)
     assert (p.ent_coef, p.vf_coef, p.max_grad_norm, p.total_steps, p.anneal_lr) == (0.0, 0.5, 0.5, 10_000_000, False)
+    assert (p.norm_value, p.reset_ratio, p.reset_slots) == (False, 1, 16)  # raw returns, one reset per env
     assert (paper.network.name, paper.network.size) == ("hh_attn", "paper")
     assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()

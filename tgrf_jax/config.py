@@ -367,19 +367,19 @@ class PPOConfig:
     # --- static
     num_envs: int = spec(128, low=1, high=65536, doc="parallel environments")
     num_steps: int = spec(30, low=1, high=10000, doc="rollout length per update (= sequence length)")
-    total_steps: int = spec(1_500_000, low=1, doc="environment steps of the whole run")
-    update_epochs: int = spec(2, low=1, high=1000, doc="reference: 5; 2 halves the learner time")
-    num_minibatches: int = spec(2, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
-    reset_slots: int = spec(16, low=1, high=65536,
-                            doc="fresh episodes sampled per rollout step for the envs that finished in it "
-                                "(>= num_envs: one per env, as env.step; see CrowdNavEnv.step_batch)")
-    anneal_lr: bool = spec(False, doc="linear learning-rate decay to 0 over the run")
+    total_steps: int = spec(2_400_000, low=1, doc="environment steps of the whole run")
+    update_epochs: int = spec(4, low=1, high=1000, doc="epochs over each rollout (reference: 5)")
+    num_minibatches: int = spec(4, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
+    reset_ratio: int = spec(8, low=1, high=65536,
+                            doc="num_envs / reset_ratio fresh episodes are sampled per rollout step for the envs "
+                                "that finished in it (1: one per env, as env.step; see CrowdNavEnv.step_batch)")
+    anneal_lr: bool = spec(True, doc="linear learning-rate decay to 0 over the run (reference: off)")
     clip_value: bool = spec(True, doc="clip the value update like the policy ratio (reference: on)")
     norm_adv: bool = spec(True, doc="normalise advantages over the whole rollout batch")
     norm_value: bool = spec(True, doc="critic predicts returns standardised by running statistics (reference: off)")
     adam_eps: float = spec(1e-5, low=0.0, low_inclusive=False)
     # --- numeric (traced hyper-parameters)
-    lr: float = spec(3e-4, low=0.0, low_inclusive=False, high=1.0)
+    lr: float = spec(6e-4, low=0.0, low_inclusive=False, high=1.0)
     gamma: float = spec(0.99, low=0.0, high=1.0)
     gae_lambda: float = spec(0.95, low=0.0, high=1.0)
     clip_eps: float = spec(0.2, low=0.0, low_inclusive=False, high=10.0)
@@ -405,6 +405,11 @@ class PPOConfig:
         return self.num_envs * self.num_steps
 
     @property
+    def reset_slots(self) -> int:
+        """Fresh episodes sampled per rollout step (about 3% of envs finish per step in the paper scenario)."""
+        return -(-self.num_envs // self.reset_ratio)
+
+    @property
     def num_updates(self) -> int:
         return self.total_steps // self.batch_size
 
@@ -415,7 +420,7 @@ class NetworkConfig:
     size: str = spec("small", choices=NETWORK_SIZES)
     frame: str = spec("goal", choices=FRAMES,
                       doc="'world': the reference's inputs; 'goal': robot-centred frame with x towards the goal")
-    init_log_std: float = spec(0.0, low=-5.0, high=2.0, doc="initial log-std of the Gaussian policy (reference: 0)")
+    init_log_std: float = spec(-0.5, low=-5.0, high=2.0, doc="initial log-std of the Gaussian policy (reference: 0)")
 
     def __post_init__(self):
         check_fields(self, "network")
