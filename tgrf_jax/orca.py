@@ -44,6 +44,7 @@ __all__ = ["RVO_EPSILON", "solve", "solve_with_info"]
 RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshold in the LPs.
 _BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
 _CHUNK = 2048  # problems per worklist chunk (see _worklist)
+_LP3_INNER_CHUNK = 256  # the same for the LP2s inside linearProgram3 (run on chunks of at most _CHUNK)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -234,18 +235,32 @@ def _lp2_start(radius, optx, opty, direction_opt):
     return jnp.where(clamp, (optx * inv) * radius, optx), jnp.where(clamp, (opty * inv) * radius, opty)
 
 
-def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
-    """One step of linearProgram2 for every problem: go to the next violated line, solve LP1 on it.
-
-    state = (rx, ry, cursor, fail_at): cursor is the rank to continue from (n_slots: finished), fail_at the
-    rank of the line where LP1 failed (n_slots: none).  On failure the result stays, as in RVO2.
-    """
+def _next_violated(lines, rank, valid, after, rx, ry, depth):
+    """Slot and rank of the lowest-ranked valid line with rank > after whose penetration det(d, p - r)
+    exceeds depth (rank == n_slots if none): where RVO2's loop does work next."""
     px, py, dx, dy = lines
-    rx, ry, cursor, fail_at = state
-    n_slots = px.shape[-1]
-    b, i_rank = _first_line(
-        valid & (rank >= cursor[:, None]) & (_det(dx, dy, px - rx[:, None], py - ry[:, None]) > 0.0), rank,
-        n_slots)
+    depth = jnp.broadcast_to(depth, rx.shape)[:, None]
+    hit = valid & (rank > after[:, None]) & (_det(dx, dy, px - rx[:, None], py - ry[:, None]) > depth)
+    return _first_line(hit, rank, px.shape[-1])
+
+
+def _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt):
+    """linearProgram2's initial state (rx, ry, next_slot, next_rank, fail_at) for :func:`_lp2_round`."""
+    rx, ry = _lp2_start(radius, optx, opty, direction_opt)
+    n_slots = lines[0].shape[-1]
+    slot, nxt = _next_violated(lines, rank, valid, jnp.full(rx.shape, -1, jnp.int32), rx, ry, 0.0)
+    return rx, ry, slot, nxt, jnp.full(rx.shape, n_slots, jnp.int32)
+
+
+def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
+    """One step of linearProgram2 for every problem: solve LP1 on the pending violated line, then look ahead
+    to the next violated line, so that a problem is pending exactly while RVO2 still has work to do.
+
+    state = (rx, ry, next_slot, next_rank, fail_at): next_rank == n_slots means finished, fail_at is the rank
+    of the line where LP1 failed (n_slots: none).  On failure the result stays and the walk stops, as in RVO2.
+    """
+    rx, ry, b, i_rank, fail_at = state
+    n_slots = lines[0].shape[-1]
     found = i_rank < n_slots
     pix, piy, dix, diy = (_pick(x, b) for x in lines)
     prev = valid & (rank < i_rank[:, None])
@@ -254,40 +269,33 @@ def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
     rx = jnp.where(take, cx, rx)
     ry = jnp.where(take, cy, ry)
     fail_at = jnp.where(found & ~ok, i_rank, fail_at)
-    cursor = jnp.where(take, i_rank + 1, n_slots)
-    return rx, ry, cursor, fail_at
+    slot, nxt = _next_violated(lines, rank, valid, i_rank, rx, ry, 0.0)
+    return rx, ry, slot, jnp.where(take, nxt, n_slots), fail_at
 
 
-def _lp2_dense(lines, rank, valid, radius, optx, opty, direction_opt):
-    """Complete linearProgram2 for a (small) set of problems: rounds until none is pending.
-
-    At most n_slots + 1 rounds are needed (each advances past a line); rounds after the last pending
-    problem finishes are skipped by a real conditional (this is never traced under vmap).
-    """
+def _lp2_events(lines, rank, valid, radius, optx, opty, direction_opt, chunk):
+    """Complete linearProgram2 for P problems: rounds run only on the problems with a violated line left (a
+    worklist), so the cost follows the total number of violated lines rather than P times the worst
+    problem's count.  Returns (rx, ry, fail_at)."""
     n_slots = lines[0].shape[-1]
-    rx, ry = _lp2_start(radius, optx, opty, direction_opt)
-    start = jnp.zeros(rx.shape, jnp.int32)
-    state = (rx, ry, start, start + n_slots)
+    state = _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt)
 
-    def body(_, state):
-        return lax.cond(jnp.any(state[2] < n_slots),
-                        lambda s: _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, s),
-                        lambda s: s, state)
+    def step(t, s):
+        new = _lp2_round(t[:4], t[4], t[5], t[6], t[7], t[8], direction_opt, s)
+        return new, new[3] < n_slots
 
-    return lax.fori_loop(0, n_slots + 1, body, state)
+    tables = tuple(lines) + (rank, valid, radius, optx, opty)
+    rx, ry, _, _, fail_at = _worklist(step, tables, state, state[3] < n_slots, n_slots, chunk)
+    return rx, ry, fail_at
 
 
 def _lp3_round(lines, rank, valid, radius, state):
-    """One step of linearProgram3: go to the next line penetrated deeper than the current worst, and
-    minimise its penetration subject to the earlier lines not exceeding it (direction-mode LP2 on the
-    projected lines).  state = (rx, ry, distance, cursor)."""
+    """One step of linearProgram3: the pending line is penetrated deeper than the current worst; minimise its
+    penetration subject to the earlier lines not exceeding it (direction-mode LP2 on the projected lines),
+    then look ahead to the next such line.  state = (rx, ry, distance, next_slot, next_rank)."""
     px, py, dx, dy = lines
-    rx, ry, distance, cursor = state
+    rx, ry, distance, b, i_rank = state
     n_slots = px.shape[-1]
-    b, i_rank = _first_line(
-        valid & (rank >= cursor[:, None])
-        & (_det(dx, dy, px - rx[:, None], py - ry[:, None]) > distance[:, None]), rank, n_slots)
-    found = i_rank < n_slots
     pix, piy, dix, diy = (p[:, None] for p in (_pick(x, b) for x in lines))
 
     # projected lines: where line j's penetration equals line i's
@@ -301,14 +309,14 @@ def _lp3_round(lines, rank, valid, radius, state):
     inv_len = _safe_inv(_safe_sqrt(ddx * ddx + ddy * ddy))  # RVO2 normalize(): v * (1 / abs(v))
     qvalid = valid & (rank < i_rank[:, None]) & ~same_dir
     nx, ny = -diy[:, 0], dix[:, 0]  # optimise towards line i's valid side
-    sx, sy, _, lp2_fail = _lp2_dense((qpx, qpy, ddx * inv_len, ddy * inv_len), rank, qvalid, radius, nx, ny,
-                                     direction_opt=True)
-    take = found & (lp2_fail == n_slots)  # a failed inner LP2 (rounding) keeps the result, as in RVO2
+    sx, sy, lp2_fail = _lp2_events((qpx, qpy, ddx * inv_len, ddy * inv_len), rank, qvalid, radius, nx, ny,
+                                   True, _LP3_INNER_CHUNK)
+    take = lp2_fail == n_slots  # a failed inner LP2 (rounding) keeps the result, as in RVO2
     rx = jnp.where(take, sx, rx)
     ry = jnp.where(take, sy, ry)
-    distance = jnp.where(found, _det(dix[:, 0], diy[:, 0], pix[:, 0] - rx, piy[:, 0] - ry), distance)
-    cursor = jnp.where(found, i_rank + 1, n_slots)
-    return rx, ry, distance, cursor
+    distance = _det(dix[:, 0], diy[:, 0], pix[:, 0] - rx, piy[:, 0] - ry)
+    slot, nxt = _next_violated(lines, rank, valid, i_rank, rx, ry, distance)
+    return rx, ry, distance, slot, nxt
 
 
 def _worklist(step, tables, state, pending, n_rounds, chunk):
@@ -372,27 +380,20 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     lines = tuple(x.reshape(a, n) for x in out[:4])
     rank, active = out[4].reshape(a, n), out[5].reshape(a, n)
 
-    # linearProgram2: the first round runs densely on all agents, later ones only on those still walking
-    rx, ry = _lp2_start(radius, ox, oy, direction_opt=False)
-    zero = jnp.zeros((a,), jnp.int32)
-    state = _lp2_round(lines, rank, active, radius, ox, oy, False, (rx, ry, zero, zero + n))
+    rx, ry, fail_at = _lp2_events(lines, rank, active, radius, ox, oy, False, _CHUNK)
 
-    def lp2_step(t, s):
-        new = _lp2_round(t[:4], t[4], t[5], t[6], t[7], t[8], False, s)
-        return new, new[2] < n
-
-    tables = lines + (rank, active, radius, ox, oy)
-    rx, ry, _, fail_at = _worklist(lp2_step, tables, state, state[2] < n, n, _CHUNK)
-
-    # linearProgram3 from the failing line, only for the agents whose LP2 failed
+    # linearProgram3 from the failing line (violated by the current result), only for the agents whose LP2
+    # failed
     failed = fail_at < n
+    fail_slot, _ = _first_line(active & (rank == fail_at[:, None]), rank, n)
 
     def lp3_step(t, s):
         new = _lp3_round(t[:4], t[4], t[5], t[6], s)
-        return new, new[3] < n
+        return new, new[4] < n
 
-    rx, ry, _, _ = _worklist(lp3_step, tables[:7], (rx, ry, jnp.zeros_like(rx), fail_at), failed, n + 1,
-                             _CHUNK)
+    tables = lines + (rank, active, radius)
+    rx, ry, *_ = _worklist(lp3_step, tables, (rx, ry, jnp.zeros_like(rx), fail_slot, fail_at), failed, n,
+                           _CHUNK)
     return jnp.stack([rx, ry], -1).reshape(b, n, 2), failed.reshape(b, n)
 
 
