@@ -12,17 +12,18 @@ How it is vectorised (RVO2's algorithm is sequential and branchy):
   RVO2's distance-sorted neighbour list; lines outside the ``max_neighbors`` nearest / ``neighbor_dist`` are
   inactive.  The LPs follow ``rank``, so the lines are never sorted (sorts and top_k are slow on XLA:CPU).
 * ``linearProgram2`` is driven by events: RVO2 only does O(lines) work at lines that the running result
-  violates (about two per agent in crowds), so each "round" moves every agent to its next violated line
-  and solves ``linearProgram1`` there (a masked scan over the earlier-ranked lines).  The first round runs on
-  all agents; later rounds only on the agents still walking, gathered into fixed-size chunks.
-* ``linearProgram3`` likewise runs only for the agents whose LP2 failed, one round per line it re-solves
-  (about 1.7 per failing agent); each such round is a direction-mode LP2 over the projected lines, run
-  as dense rounds on its chunk.
+  violates (about 2.4 per agent in crossing crowds), so each "round" solves ``linearProgram1`` on a
+  problem's pending violated line (a masked scan over the earlier-ranked lines) and then looks ahead to
+  the next violated line.  A problem is pending exactly while it has such a line, and rounds run only on
+  the pending problems, gathered into fixed-size chunks (a worklist).
+* ``linearProgram3`` runs the same way, only for the agents whose LP2 failed, one round per line it
+  re-solves (about 1.9 per failing agent); each such round is a direction-mode LP2 over the projected lines,
+  itself a worklist over the round's chunk (3.2 violated lines per LP2 on average).
 * The four line components are built one per step of a 4-step loop (a ``lax.switch``): XLA:CPU splits a
   multi-output elementwise computation into many materialised passes (measured ~15 fusions, 15-20x slower
   than one component alone), while a single output fuses into one loop.
 * The chunking and "skip what has nothing to do" logic uses real ``lax.cond``s inside ``fori_loop``s
-  (bounded: at most lines + 1 rounds).  Under ``vmap`` a cond would become a select and every agent would
+  (bounded: at most one round per line).  Under ``vmap`` a cond would become a select and every agent would
   pay for the worst one, so :func:`solve` carries a ``jax.custom_batching.custom_vmap`` rule: ``jax.vmap``
   (nested too) hands the whole batch to one kernel, where the conditionals stay conditionals and the
   chunks draw from all scenes.
