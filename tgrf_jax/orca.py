@@ -124,6 +124,20 @@ def _orca_lines(rpx, rpy, rvx, rvy, crad, vx, vy, inv_th, inv_dt, tie_sign):
     return vx + 0.5 * ux, vy + 0.5 * uy, dx, dy
 
 
+def _componentwise(fn, args, n_out, shape):
+    """fn(*args) -> n_out float32 arrays of ``shape``, evaluated one output per step of a loop (a switch).
+
+    XLA:CPU splits a multi-output elementwise computation into many materialised passes (measured ~20x
+    slower than one output), while a single output is one fused loop; recomputing the shared
+    intermediates once per output is far cheaper.
+    """
+    branches = [lambda args, c=c: fn(*args)[c] for c in range(n_out)]
+    out = lax.fori_loop(
+        0, n_out, lambda c, buf: lax.dynamic_update_index_in_dim(buf, lax.switch(c, branches, args), c, 0),
+        jnp.zeros((n_out,) + tuple(shape), jnp.float32))
+    return tuple(out[c] for c in range(n_out))
+
+
 def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
     """ORCA lines of every agent towards every other agent, plus RVO2's neighbour order.
 
@@ -153,13 +167,7 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
     args = (rpx, rpy, vx[:, :, None] - vx[:, None, :], vy[:, :, None] - vy[:, None, :],
             rad[:, :, None] + rad[:, None, :], vx[:, :, None], vy[:, :, None],
             inv_th[:, None, None], inv_dt[:, None, None], tie_sign)
-    # One component per loop step (a switch): XLA:CPU splits a multi-output elementwise computation into
-    # many materialised passes (measured ~20x slower than one output), while one output is one fused loop.
-    branches = [lambda args, c=c: _orca_lines(*args)[c] for c in range(4)]
-    lines = lax.fori_loop(
-        0, 4, lambda c, buf: lax.dynamic_update_index_in_dim(buf, lax.switch(c, branches, args), c, 0),
-        jnp.zeros((4,) + rpx.shape, rpx.dtype))
-    return lines[0], lines[1], lines[2], lines[3], rank, active
+    return _componentwise(_orca_lines, args, 4, rpx.shape) + (rank, active)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -290,6 +298,19 @@ def _lp2_events(lines, rank, valid, radius, optx, opty, direction_opt, chunk):
     return rx, ry, fail_at
 
 
+def _projected_lines(pix, piy, dix, diy, px, py, dx, dy):
+    """linearProgram3's projected lines (point, unit direction) for line i (pi, di; (P, 1)) and lines j (P, L):
+    where line j's penetration equals line i's (the midline between them where they are parallel)."""
+    determinant = _det(dix, diy, dx, dy)
+    parallel = jnp.abs(determinant) <= RVO_EPSILON
+    s = _det(dx, dy, pix - px, piy - py) / jnp.where(parallel, 1.0, determinant)
+    qpx = jnp.where(parallel, 0.5 * (pix + px), pix + s * dix)
+    qpy = jnp.where(parallel, 0.5 * (piy + py), piy + s * diy)
+    ddx, ddy = dx - dix, dy - diy
+    inv_len = _safe_inv(_safe_sqrt(ddx * ddx + ddy * ddy))  # RVO2 normalize(): v * (1 / abs(v))
+    return qpx, qpy, ddx * inv_len, ddy * inv_len
+
+
 def _lp3_round(lines, rank, valid, radius, state):
     """One step of linearProgram3: the pending line is penetrated deeper than the current worst; minimise its
     penetration subject to the earlier lines not exceeding it (direction-mode LP2 on the projected lines),
@@ -299,19 +320,11 @@ def _lp3_round(lines, rank, valid, radius, state):
     n_slots = px.shape[-1]
     pix, piy, dix, diy = (p[:, None] for p in (_pick(x, b) for x in lines))
 
-    # projected lines: where line j's penetration equals line i's
-    determinant = _det(dix, diy, dx, dy)
-    parallel = jnp.abs(determinant) <= RVO_EPSILON
-    same_dir = parallel & (dix * dx + diy * dy > 0.0)
-    s = _det(dx, dy, pix - px, piy - py) / jnp.where(parallel, 1.0, determinant)
-    qpx = jnp.where(parallel, 0.5 * (pix + px), pix + s * dix)
-    qpy = jnp.where(parallel, 0.5 * (piy + py), piy + s * diy)
-    ddx, ddy = dx - dix, dy - diy
-    inv_len = _safe_inv(_safe_sqrt(ddx * ddx + ddy * ddy))  # RVO2 normalize(): v * (1 / abs(v))
-    qvalid = valid & (rank < i_rank[:, None]) & ~same_dir
+    projected = _componentwise(_projected_lines, (pix, piy, dix, diy) + tuple(lines), 4, px.shape)
+    parallel = jnp.abs(_det(dix, diy, dx, dy)) <= RVO_EPSILON
+    qvalid = valid & (rank < i_rank[:, None]) & ~(parallel & (dix * dx + diy * dy > 0.0))
     nx, ny = -diy[:, 0], dix[:, 0]  # optimise towards line i's valid side
-    sx, sy, lp2_fail = _lp2_events((qpx, qpy, ddx * inv_len, ddy * inv_len), rank, qvalid, radius, nx, ny,
-                                   True, _LP3_INNER_CHUNK)
+    sx, sy, lp2_fail = _lp2_events(projected, rank, qvalid, radius, nx, ny, True, _LP3_INNER_CHUNK)
     take = lp2_fail == n_slots  # a failed inner LP2 (rounding) keeps the result, as in RVO2
     rx = jnp.where(take, sx, rx)
     ry = jnp.where(take, sy, ry)
