@@ -83,9 +83,17 @@ def breakdown(policy: str, num_humans: int, batch: int, repeats: int) -> dict:
     return out
 
 
+def scan_length(batch: int, quick: bool) -> int:
+    """Steps per timed call: long enough to amortise the call, short enough for the large batches."""
+    if batch <= 16:
+        return 50 if quick else 200
+    return 20 if quick or batch > 1024 else 50
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="20 humans, a few batch sizes (< 1 minute)")
+    parser.add_argument("--quick", action="store_true",
+                        help="20 humans, batches 1 / 128 / 1024, shorter scans, no breakdown (< 1 minute)")
     parser.add_argument("--out", help="write results as JSON here")
     args = parser.parse_args(argv)
 
@@ -101,8 +109,7 @@ def main(argv=None):
     rows = []
     print(f"{'policy':>13} {'humans':>6} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} {'step_batch':>12}")
     for policy, n, batch in grid:
-        n_steps = 200 if batch <= 16 else 50 if batch <= 1024 else 20
-        row = measure(policy, n, batch, n_steps, repeats)
+        row = measure(policy, n, batch, scan_length(batch, args.quick), repeats)
         rows.append(row)
         batched = f"{row['step_batch_env_steps_per_s']:>12,.0f}" if "reset_slots" in row else f"{'-':>12}"
         print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {row['env_steps_per_s']:>12,.0f} {batched}",
@@ -115,7 +122,7 @@ def main(argv=None):
     best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20), key=lambda r: r["env_steps_per_s"])
     print(f"best ORCA-20 env: {best['env_steps_per_s']:,.0f} env-steps/s at batch {best['batch']} "
           f"= {best['env_steps_per_s'] / rvo2:.1f}x RVO2's raw doStep")
-    parts = {p: breakdown(p, 20, 1024, repeats) for p in ("orca", "social_force")}
+    parts = {} if args.quick else {p: breakdown(p, 20, 1024, repeats) for p in ("orca", "social_force")}
     for p, ms in parts.items():
         print(f"where the time goes, {p}, 20 humans, batch 1024 (ms per batched call): {ms}")
     write_json(args.out, {"benchmark": "env_throughput", "quick": args.quick, "machine": info,
