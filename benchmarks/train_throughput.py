@@ -25,13 +25,13 @@ from tgrf_jax.train import make_train
 
 
 def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,
-            breakdown: bool, repeats: int, epochs: int, minibatches: int) -> dict:
+            breakdown: bool, repeats: int, epochs: int, minibatches: int, microbatch_envs: int) -> dict:
     cfg = TrainConfig.from_dict({
         "env": {"num_humans": 20, "human_policy": human_policy, "predictor": "const_vel"},
         "network": {"name": name, "size": size},
         "ppo": {"num_envs": num_envs, "num_steps": num_steps,
                 "num_minibatches": minibatches if num_envs % minibatches == 0 else 1,
-                "update_epochs": epochs, "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
+                "update_epochs": epochs, "microbatch_envs": microbatch_envs, "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
     })
     t = make_train(cfg)
     tr = t.trainer
@@ -52,6 +52,7 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
     out = {
         "network": name, "size": size, "num_envs": num_envs, "num_steps": num_steps, "human_policy": human_policy,
         "update_epochs": cfg.ppo.update_epochs, "num_minibatches": cfg.ppo.num_minibatches,
+        "microbatches": cfg.ppo.num_microbatches,
         "params": tr.net.num_params(state.params), "updates_per_call": updates, "compile_s": round(compile_s, 2),
         "update_s": round(run_s / updates, 5), "train_sps": round(steps / run_s, 1),
     }
@@ -90,6 +91,8 @@ def main(argv=None):
                         help="PPO epochs per update (default: the embedded default config's)")
     parser.add_argument("--minibatches", type=int, default=default_ppo.num_minibatches,
                         help="minibatches per epoch (default: the embedded default config's)")
+    parser.add_argument("--microbatch-envs", type=int, default=default_ppo.microbatch_envs,
+                        help="envs per gradient slice (default: the embedded default config's; 0: whole minibatch)")
     args = parser.parse_args(argv)
     if args.quick:
         nets = args.nets or ["hh_attn/small"]
@@ -108,7 +111,7 @@ def main(argv=None):
             if size == "paper" and name == "hh_attn" and n > 256 and not args.envs:
                 continue  # minutes per point on 2 cores
             r = measure(name, size, n, args.human_policy, num_steps, updates, breakdown, repeats, args.epochs,
-                        args.minibatches)
+                        args.minibatches, args.microbatch_envs)
             results.append(r)
             print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} {r.get('env_s', 0):>7.3f} "
                   f"{r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f}", flush=True)

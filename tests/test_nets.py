@@ -177,6 +177,22 @@ def test_invisible_rows_do_not_influence(name, size):
     np.testing.assert_array_equal(out_a[1][0], out_c[1][0])  # other batch rows untouched
 
 
+@pytest.mark.parametrize("size", NETWORK_SIZES)
+def test_hh_attn_attends_to_the_nearest_max_humans(size):
+    """`small` reads only the first (nearest visible) `max_humans` rows; `paper` reads all of them."""
+    net, params, step = built("hh_attn", size, 12)
+    max_humans = net.module.size.max_humans
+    assert max_humans == {"paper": 0, "small": 16}[size]
+    obs = random_obs(jax.random.PRNGKey(6), (B,), N, 12, num_visible=jnp.array([N, N, N]))
+    carry = net.initialize_carry(B)
+    base = step(params, carry, obs, jnp.zeros(B, bool))[1]
+    for row in (0, 15, 16, 19):
+        moved = obs.replace(humans=obs.humans.at[:, row, :2].add(2.0))
+        out = step(params, carry, moved, jnp.zeros(B, bool))[1]
+        read = max_humans == 0 or row < max_humans
+        assert np.allclose(out, base) != read, (size, row)
+
+
 def test_dsrnn_ignores_predictions():
     net, params, step = built("dsrnn", "small", 12)
     obs = random_obs(jax.random.PRNGKey(6), (B,), N, 12)

@@ -168,6 +168,38 @@ def test_chunking_does_not_change_the_result():
     assert int(s1.update) == int(s2.update) == 4
 
 
+def test_gradient_microbatches_give_the_same_update():
+    """Accumulating a minibatch's gradient over env slices is the same update, up to float rounding."""
+    results = []
+    for microbatch_envs in (0, 2, 1):
+        cfg = tiny_config(env={"num_humans": 3, "predictor": "const_vel"}, network={"name": "hh_attn"},
+                          ppo={"microbatch_envs": microbatch_envs})
+        assert cfg.ppo.num_microbatches == {0: 1, 2: 2, 1: 4}[microbatch_envs]
+        t = make_train(cfg)
+        state, metrics = t.run_chunk(t.init(jax.random.PRNGKey(0), t.default_hparams), 2)
+        results.append((np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(state.params)]), metrics))
+    (whole, m_whole), *sliced = results
+    for params, metrics in sliced:
+        np.testing.assert_allclose(params, whole, rtol=1e-4, atol=1e-6)
+        for name in ("loss", "approx_kl", "grad_norm"):
+            np.testing.assert_allclose(float(metrics[name]), float(m_whole[name]), rtol=1e-4, atol=1e-7)
+    initial = t.init(jax.random.PRNGKey(0), t.default_hparams).params
+    moved = whole - np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(initial)])
+    assert np.abs(moved).max() > 1e-4  # the updates did something, so the comparison means something
+
+
+def test_microbatch_slices_are_the_fewest_equal_ones_within_the_limit():
+    def slices(envs, minibatches, microbatch_envs):
+        return tiny_config(ppo={"num_envs": envs, "num_minibatches": minibatches, "total_steps": envs * 8,
+                                "microbatch_envs": microbatch_envs}).ppo.num_microbatches
+
+    assert slices(128, 4, 8) == 4  # 32 envs per minibatch -> 4 slices of 8
+    assert slices(128, 4, 0) == 1
+    assert slices(24, 4, 4) == 2  # 6 envs -> 2 slices of 3
+    assert slices(12, 4, 8) == 1  # 3 envs fit in one slice
+    assert slices(14, 1, 4) == 7  # 14 envs -> 7 slices of 2 (14 has no divisor in 3..4)
+
+
 def test_train_is_vmappable_over_seeds_and_hparams():
     """Seeds x numeric hparams (lr, a reward parameter) as a vmap: vmapped init, then vmapped chunks.
 

@@ -367,9 +367,13 @@ class PPOConfig:
     # --- static
     num_envs: int = spec(128, low=1, high=65536, doc="parallel environments")
     num_steps: int = spec(30, low=1, high=10000, doc="rollout length per update (= sequence length)")
-    total_steps: int = spec(2_400_000, low=1, doc="environment steps of the whole run")
+    total_steps: int = spec(2_764_800, low=1, doc="environment steps of the whole run")
     update_epochs: int = spec(4, low=1, high=1000, doc="epochs over each rollout (reference: 5)")
     num_minibatches: int = spec(4, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
+    microbatch_envs: int = spec(8, low=0, high=65536,
+                                doc="envs per gradient slice: each minibatch's gradient is accumulated over equal "
+                                    "slices of at most this many envs (the same update up to float rounding; small "
+                                    "slices keep the learner's activations in cache); 0: the whole minibatch at once")
     reset_ratio: int = spec(8, low=1, high=65536,
                             doc="num_envs / reset_ratio fresh episodes are sampled per rollout step for the envs "
                                 "that finished in it (1: one per env, as env.step; see CrowdNavEnv.step_batch)")
@@ -403,6 +407,15 @@ class PPOConfig:
     @property
     def batch_size(self) -> int:
         return self.num_envs * self.num_steps
+
+    @property
+    def num_microbatches(self) -> int:
+        """Gradient slices per minibatch: the fewest equal slices of at most `microbatch_envs` envs."""
+        minibatch_envs = self.num_envs // self.num_minibatches
+        if self.microbatch_envs == 0:
+            return 1
+        return next(n for n in range(1, minibatch_envs + 1)
+                    if minibatch_envs % n == 0 and minibatch_envs // n <= self.microbatch_envs)
 
     @property
     def reset_slots(self) -> int:

@@ -35,7 +35,10 @@ Presets (`HH_ATTN_SIZES`):
   cores, while keeping every architectural element (both attentions, masks, GRU memory, separate actor / critic
   trunks). 64 hidden units and a 64-unit GRU are the usual sizes for small continuous-control PPO policies.
   Unlike `paper`, it feeds the embedding straight into the attention's own in-projection (see
-  `qkv_pre_projection`). 80,709 params (D = 12, N = 20), 80,069 with D = 2.
+  `qkv_pre_projection`), and it attends to the 16 nearest visible humans (`max_humans`): on average 8 of the 20
+  are visible and more than 16 in under 3% of the steps (sensor range 5 m), while every per-human layer costs in
+  proportion to the rows it reads; the default run's policy, evaluated with the cut and without it, scored
+  85.0% and 84.2%. 80,709 params (D = 12, N = 20), 80,069 with D = 2.
 """
 
 from __future__ import annotations
@@ -73,6 +76,9 @@ class HHAttnSize:
     # packed in-projection; two linear maps in a row are one linear map, so `small` skips the first (same function
     # class, a third fewer attention FLOPs).
     qkv_pre_projection: bool = True
+    # Attend to at most this many humans, the nearest visible ones (observation rows are sorted visible first by
+    # distance); 0: all N rows.
+    max_humans: int = 0
 
 
 HH_ATTN_SIZES = {
@@ -82,7 +88,7 @@ HH_ATTN_SIZES = {
     ),
     "small": HHAttnSize(
         robot_embed=64, hh_embed_hidden=64, hh_attn=64, hh_heads=2, human_embed=64, rh_attn=32, node_embed=32,
-        gru=64, output=64, head_hidden=64, qkv_pre_projection=False,
+        gru=64, output=64, head_hidden=64, qkv_pre_projection=False, max_humans=16,
     ),
 }
 
@@ -126,8 +132,10 @@ class HHAttnNet(nn.Module):
         """Observation (any leading shape) -> GRU input (..., 2e)."""
         s = self.size
         mask = obs.human_mask.astype(bool)
-        num_humans = obs.humans.shape[-2]
+        num_humans = obs.humans.shape[-2]  # the attention temperature keeps the env's N (reference quirk)
         humans = masked_humans(obs.humans.astype(jnp.float32), mask)
+        if 0 < s.max_humans < num_humans:
+            mask, humans = mask[..., :s.max_humans], humans[..., :s.max_humans, :]
 
         robot = jnp.concatenate([obs.robot_vel, obs.robot_node], axis=-1).astype(jnp.float32)
         r_emb = nn.relu(self.robot_linear(robot))

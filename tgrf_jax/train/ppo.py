@@ -319,10 +319,33 @@ class Trainer:
         mb_envs = p.num_envs // n_mb
         loss_grad = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
 
+        def minibatch_grad(params, mb):
+            """Loss, aux and gradient of one minibatch, accumulated over `p.num_microbatches` equal env slices: the
+            loss is a mean over equal-sized slices, so the mean of their gradients is the minibatch's gradient."""
+            n_micro = p.num_microbatches
+            if n_micro == 1:
+                c0, batch, a, r = mb
+                return loss_grad(self.net, params, c0, batch, a, r, hp, p.clip_value, value_stats)
+            split_t = lambda x: jnp.moveaxis(  # noqa: E731
+                x.reshape((x.shape[0], n_micro, x.shape[1] // n_micro) + x.shape[2:]), 1, 0)
+            split_c = lambda x: x.reshape((n_micro, x.shape[0] // n_micro) + x.shape[1:])  # noqa: E731
+            c0, batch, a, r = mb
+            slices = (jax.tree_util.tree_map(split_c, c0), jax.tree_util.tree_map(split_t, batch), split_t(a),
+                      split_t(r))
+
+            def accumulate(total, sl):
+                out = loss_grad(self.net, params, *sl, hp, p.clip_value, value_stats)
+                return jax.tree_util.tree_map(jnp.add, total, out), None
+
+            zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(
+                lambda: loss_grad(self.net, params, *jax.tree_util.tree_map(lambda x: x[0], slices), hp,
+                                  p.clip_value, value_stats)))
+            total, _ = jax.lax.scan(accumulate, zeros, slices)
+            return jax.tree_util.tree_map(lambda x: x / n_micro, total)
+
         def minibatch_step(carry, mb):
             params, opt_state = carry
-            c0, batch, a, r = mb
-            (loss, aux), grads = loss_grad(self.net, params, c0, batch, a, r, hp, p.clip_value, value_stats)
+            (loss, aux), grads = minibatch_grad(params, mb)
             grads, g_norm = clip_by_global_norm(grads, hp.max_grad_norm)
             updates, opt_state = self._adam.update(grads, opt_state, params)
             params = optax.apply_updates(params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
