@@ -190,6 +190,16 @@ def ppo_loss(net: ActorCritic, params, carry0, batch: Transition, advantages, re
     return loss, aux
 
 
+def split_time_major(x, n):
+    """(T, B, ...) -> (n, T, B / n, ...): n groups of whole env sequences."""
+    return jnp.moveaxis(x.reshape((x.shape[0], n, x.shape[1] // n) + x.shape[2:]), 1, 0)
+
+
+def split_envs(x, n):
+    """(B, ...) -> (n, B / n, ...)."""
+    return x.reshape((n, x.shape[0] // n) + x.shape[1:])
+
+
 def clip_by_global_norm(grads, max_norm):
     """optax.clip_by_global_norm with a traced max_norm; returns (clipped grads, pre-clip norm)."""
     g_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree_util.tree_leaves(grads)))
@@ -316,7 +326,6 @@ class Trainer:
 
         # --- epochs x minibatches over envs (whole sequences)
         n_mb = p.num_minibatches
-        mb_envs = p.num_envs // n_mb
         loss_grad = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
 
         def minibatch_grad(params, mb):
@@ -326,9 +335,8 @@ class Trainer:
             if n_micro == 1:
                 c0, batch, a, r = mb
                 return loss_grad(self.net, params, c0, batch, a, r, hp, p.clip_value, value_stats)
-            split_t = lambda x: jnp.moveaxis(  # noqa: E731
-                x.reshape((x.shape[0], n_micro, x.shape[1] // n_micro) + x.shape[2:]), 1, 0)
-            split_c = lambda x: x.reshape((n_micro, x.shape[0] // n_micro) + x.shape[1:])  # noqa: E731
+            split_t = lambda x: split_time_major(x, n_micro)  # noqa: E731
+            split_c = lambda x: split_envs(x, n_micro)  # noqa: E731
             c0, batch, a, r = mb
             slices = (jax.tree_util.tree_map(split_c, c0), jax.tree_util.tree_map(split_t, batch), split_t(a),
                       split_t(r))
@@ -355,9 +363,8 @@ class Trainer:
             perm = jax.random.permutation(k, p.num_envs)
             take_env = lambda x, axis: jnp.take(x, perm, axis=axis)  # noqa: E731
             # time-major data (T, B, ...) -> (n_mb, T, b, ...); carries (B, ...) -> (n_mb, b, ...)
-            split_t = lambda x: jnp.moveaxis(  # noqa: E731
-                take_env(x, 1).reshape((x.shape[0], n_mb, mb_envs) + x.shape[2:]), 1, 0)
-            split_c = lambda x: take_env(x, 0).reshape((n_mb, mb_envs) + x.shape[1:])  # noqa: E731
+            split_t = lambda x: split_time_major(take_env(x, 1), n_mb)  # noqa: E731
+            split_c = lambda x: split_envs(take_env(x, 0), n_mb)  # noqa: E731
             mbs = (
                 jax.tree_util.tree_map(split_c, carry0),
                 jax.tree_util.tree_map(split_t, traj),
