@@ -81,27 +81,29 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="HH Attn small at 64 envs, no breakdown (< 1 min)")
+    parser.add_argument("--quick", action="store_true", help="HH Attn small at the default config's env count, no breakdown (< 1 min)")
     parser.add_argument("--out", help="write results as JSON")
     parser.add_argument("--human-policy", default="orca", choices=["orca", "social_force"])
-    parser.add_argument("--envs", type=int, nargs="*", help="env counts (default: 64 256 1024; quick: 64)")
+    parser.add_argument("--envs", type=int, nargs="*", help="env counts (default: 64 256 1024; quick: the default config's)")
     parser.add_argument("--nets", nargs="*", help="name/size pairs, e.g. hh_attn/small mlp/small")
     default_ppo = TrainConfig().ppo
     parser.add_argument("--epochs", type=int, default=default_ppo.update_epochs,
                         help="PPO epochs per update (default: the embedded default config's)")
     parser.add_argument("--minibatches", type=int, default=default_ppo.num_minibatches,
                         help="minibatches per epoch (default: the embedded default config's)")
+    parser.add_argument("--num-steps", type=int, default=default_ppo.num_steps,
+                        help="rollout length per update (default: the embedded default config's)")
     parser.add_argument("--microbatch-envs", type=int, default=default_ppo.microbatch_envs,
                         help="envs per gradient slice (default: the embedded default config's; 0: whole minibatch)")
     args = parser.parse_args(argv)
     if args.quick:
         nets = args.nets or ["hh_attn/small"]
-        envs = args.envs or [64]
-        num_steps, updates, breakdown, repeats = 30, 1, False, 1
+        envs = args.envs or [default_ppo.num_envs]
+        updates, breakdown, repeats = 1, False, 1
     else:
         nets = args.nets or ["hh_attn/small", "hh_attn/paper", "dsrnn/paper", "mlp/small"]
         envs = args.envs or [64, 256, 1024]
-        num_steps, updates, breakdown, repeats = 30, 2, True, 3
+        updates, breakdown, repeats = 2, True, 3
     results = []
     print(f"{'net':>14} {'envs':>5} {'train sps':>10} {'compile s':>9} {'env s':>7} {'rollout s':>9} "
           f"{'learn s':>8} (per update)", flush=True)
@@ -110,7 +112,7 @@ def main(argv=None):
         for n in envs:
             if size == "paper" and name == "hh_attn" and n > 256 and not args.envs:
                 continue  # minutes per point on 2 cores
-            r = measure(name, size, n, args.human_policy, num_steps, updates, breakdown, repeats, args.epochs,
+            r = measure(name, size, n, args.human_policy, args.num_steps, updates, breakdown, repeats, args.epochs,
                         args.minibatches, args.microbatch_envs)
             results.append(r)
             print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} {r.get('env_s', 0):>7.3f} "

@@ -365,12 +365,12 @@ class PPOConfig:
     """
 
     # --- static
-    num_envs: int = spec(128, low=1, high=65536, doc="parallel environments")
-    num_steps: int = spec(30, low=1, high=10000, doc="rollout length per update (= sequence length)")
-    total_steps: int = spec(2_764_800, low=1, doc="environment steps of the whole run")
+    num_envs: int = spec(256, low=1, high=65536, doc="parallel environments")
+    num_steps: int = spec(15, low=1, high=10000, doc="rollout length per update (= sequence length)")
+    total_steps: int = spec(2_995_200, low=1, doc="environment steps of the whole run")
     update_epochs: int = spec(4, low=1, high=1000, doc="epochs over each rollout (reference: 5)")
     num_minibatches: int = spec(4, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
-    microbatch_envs: int = spec(8, low=0, high=65536,
+    microbatch_envs: int = spec(16, low=0, high=65536,
                                 doc="envs per gradient slice: each minibatch's gradient is accumulated over equal "
                                     "slices of at most this many envs (the same update up to float rounding; small "
                                     "slices keep the learner's activations in cache); 0: the whole minibatch at once")
