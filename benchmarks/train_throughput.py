@@ -31,7 +31,8 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
         "network": {"name": name, "size": size},
         "ppo": {"num_envs": num_envs, "num_steps": num_steps,
                 "num_minibatches": minibatches if num_envs % minibatches == 0 else 1,
-                "update_epochs": epochs, "microbatch_envs": microbatch_envs, "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
+                "update_epochs": epochs, "microbatch_envs": microbatch_envs,
+                "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
     })
     t = make_train(cfg)
     tr = t.trainer
@@ -81,10 +82,12 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="HH Attn small at the default config's env count, no breakdown (< 1 min)")
+    parser.add_argument("--quick", action="store_true",
+                        help="HH Attn small at the default config's env count, no breakdown (< 1 min)")
     parser.add_argument("--out", help="write results as JSON")
     parser.add_argument("--human-policy", default="orca", choices=["orca", "social_force"])
-    parser.add_argument("--envs", type=int, nargs="*", help="env counts (default: 64 256 1024; quick: the default config's)")
+    parser.add_argument("--envs", type=int, nargs="*",
+                        help="env counts (default: 64 256 1024; quick: the default config's)")
     parser.add_argument("--nets", nargs="*", help="name/size pairs, e.g. hh_attn/small mlp/small")
     default_ppo = TrainConfig().ppo
     parser.add_argument("--epochs", type=int, default=default_ppo.update_epochs,
