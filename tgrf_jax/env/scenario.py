@@ -10,6 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from tgrf_jax.batching import cond_any
 from tgrf_jax.env.types import EnvParams, Humans, Robot
 from tgrf_jax.geometry import norm
 
@@ -149,11 +150,21 @@ def choose(candidates, margin):
 
 
 def change_goals(key, humans: Humans, robot: Robot, params: EnvParams, step_count, tries: int) -> Humans:
-    """Every goal_change_interval seconds each human switches, with goal_change_prob, to a new circle goal."""
+    """Every goal_change_interval seconds each human switches, with goal_change_prob, to a new circle goal.
+
+    The candidates are drawn only on the steps where changes fall due (one in 20 by default), also in a
+    vmapped batch of environments, where no element being due skips the work (see `cond_any`).
+    """
+    due = (step_count % params.goal_change_period) == 0
+    return cond_any(due, lambda *args: _switch_goals(*args, tries), lambda key, humans, robot, params: humans,
+                    key, humans, robot, params)
+
+
+def _switch_goals(key, humans: Humans, robot: Robot, params: EnvParams, tries: int) -> Humans:
+    """Each human switches, with goal_change_prob, to a new goal on the circle clear of the others."""
     n = humans.pos.shape[0]
     k_coin, k_cand = jax.random.split(key)
-    due = (step_count % params.goal_change_period) == 0
-    switch = due & (uniform(k_coin, (n,)) < params.goal_change_prob)
+    switch = uniform(k_coin, (n,)) < params.goal_change_prob
     candidates = goal_candidates(k_cand, params, humans.v_pref, (n, tries))
     margin = clearance(candidates, humans.radius, *_others_excluding_self(humans, robot, params), params.spawn_clearance)
     return humans.replace(goal=jnp.where(switch[:, None], choose(candidates, margin), humans.goal))

@@ -20,6 +20,20 @@ def visible_mask(state: EnvState, params: EnvParams):
     return d <= params.sensor_range
 
 
+def sort_order(keys):
+    """``jnp.argsort(keys, stable=True)`` for a short vector (N,), by counting: element i goes to position
+    #{j: keys[j] < keys[i], or equal with j < i}.
+
+    N^2 comparisons, which for N = 20 cost a fraction of XLA:CPU's comparator sort (about 12% of an
+    environment step without the human policy).
+    """
+    n = keys.shape[-1]
+    idx = jnp.arange(n, dtype=jnp.int32)
+    before = (keys[None, :] < keys[:, None]) | ((keys[None, :] == keys[:, None]) & (idx[None, :] < idx[:, None]))
+    position = jnp.sum(before, axis=-1, dtype=jnp.int32)
+    return jnp.sum(jnp.where(position[None, :] == idx[:, None], idx[None, :], 0), axis=-1, dtype=jnp.int32)
+
+
 def observe(state: EnvState, params: EnvParams, predictions, visible) -> Obs:
     """Build the observation; `predictions` are world positions (N, K, 2) or None."""
     robot, humans = state.robot, state.humans
@@ -29,7 +43,7 @@ def observe(state: EnvState, params: EnvParams, predictions, visible) -> Obs:
         features.append((predictions - robot.pos).reshape(rel.shape[0], -1))
     features = jnp.concatenate(features, axis=-1)
 
-    order = jnp.argsort(jnp.where(visible, norm(rel), jnp.inf))
+    order = sort_order(jnp.where(visible, norm(rel), jnp.inf))
     mask = visible[order]
     robot_node = jnp.concatenate(
         [robot.pos, params.robot_radius[None], robot.goal, params.robot_v_max[None], robot.heading[None]]
