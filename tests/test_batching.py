@@ -25,7 +25,8 @@ def test_cond_any_equals_lax_cond_unbatched_and_batched():
     for pred in (True, False):
         got = cond_any(jnp.asarray(pred), _bump, _keep, x, y)
         want = jax.lax.cond(pred, _bump, _keep, x, y)
-        assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)))
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(a, b)
 
     xs = jnp.arange(12.0).reshape(4, 3)
     ys = jnp.asarray([0.0, 1.0, 2.0, 3.0])
