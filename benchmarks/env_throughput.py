@@ -15,6 +15,7 @@ reference for a compiled ORCA step.
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 
 import jax
@@ -46,27 +47,38 @@ def make_runner(env: CrowdNavEnv, n_steps: int, num_resets: int | None = None):
     return run, params
 
 
-def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int) -> dict:
-    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": "const_vel"})
-    run, params = make_runner(env, n_steps)
-    keys = jax.random.split(jax.random.key(0), batch)
-    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
-    # Time from mid-crossing states (as a training run sees them): ORCA costs up to twice as much there as in
-    # the first steps after a reset, when the humans are still spread out on their circle.
+def time_from_mid_crossing(run, obs, state, repeats: int) -> tuple[float, float]:
+    """(compile_s, median run_s) of a runner, timed from the state its first (compiling) call leaves: the crowd
+    mid-crossing, as a training run sees it; ORCA costs up to twice as much there as in the first steps after
+    a reset, when the humans are still spread out on their circle."""
     start = time.perf_counter()
     (obs, state), _ = jax.block_until_ready(run(jax.random.key(1), obs, state))
     first_s = time.perf_counter() - start
-    _, run_s = time_call(run, jax.random.key(2), obs, state, repeats=repeats)
-    compile_s = max(first_s - run_s, 0.0)
-    row = {
-        "policy": policy, "num_humans": num_humans, "batch": batch, "steps_per_call": n_steps,
-        "compile_s": round(compile_s, 3), "run_s": round(run_s, 5), "env_steps_per_s": batch * n_steps / run_s,
-    }
+    runs = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(run(jax.random.key(2), obs, state))
+        runs.append(time.perf_counter() - start)
+    run_s = statistics.median(runs)
+    return max(first_s - run_s, 0.0), run_s
+
+
+def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int, plain: bool = True) -> dict:
+    """One grid point: `vmap(step)` (unless not `plain`) and, from batch 16, `step_batch`."""
+    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": "const_vel"})
+    params = env.default_params
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(0), batch), params)
+    row = {"policy": policy, "num_humans": num_humans, "batch": batch, "steps_per_call": n_steps}
+    runners = {}
+    if plain or batch < 16:
+        runners["env_steps_per_s"] = make_runner(env, n_steps)[0]
     if batch >= 16:
         row["reset_slots"] = batch // 8
-        run_batched, _ = make_runner(env, n_steps, batch // 8)
-        _, run_s = time_call(run_batched, jax.random.key(2), obs, state, repeats=repeats)
-        row["step_batch_env_steps_per_s"] = batch * n_steps / run_s
+        runners["step_batch_env_steps_per_s"] = make_runner(env, n_steps, batch // 8)[0]
+    for name, run in runners.items():
+        compile_s, run_s = time_from_mid_crossing(run, obs, state, repeats)
+        row.setdefault("compile_s", round(compile_s, 3))
+        row[name] = batch * n_steps / run_s
     return row
 
 
@@ -102,14 +114,14 @@ def scan_length(batch: int, quick: bool) -> int:
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true",
-                        help="20 humans: ORCA at batches 128 and 1024, Social Force at 1024; shorter scans, "
-                             "no breakdown (< 1 minute)")
+                        help="20 humans: ORCA at batches 128 and 1024, Social Force at 1024; step_batch only, "
+                             "shorter scans, no breakdown (< 1 minute)")
     parser.add_argument("--out", help="write results as JSON here")
     args = parser.parse_args(argv)
 
     if args.quick:
         grid = [("orca", 20, 128), ("orca", 20, 1024), ("social_force", 20, 1024)]
-        repeats = 2
+        repeats = 2  # and only step_batch (the trainer's path): each ORCA program takes ~10 s to compile
     else:
         grid = [(p, n, b) for p in ("orca", "social_force") for n in (5, 10, 20, 50)
                 for b in (1, 16, 256, 1024, 4096)]
@@ -119,19 +131,20 @@ def main(argv=None):
     rows = []
     print(f"{'policy':>13} {'humans':>6} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} {'step_batch':>12}")
     for policy, n, batch in grid:
-        row = measure(policy, n, batch, scan_length(batch, args.quick), repeats)
+        row = measure(policy, n, batch, scan_length(batch, args.quick), repeats, plain=not args.quick)
         rows.append(row)
-        batched = f"{row['step_batch_env_steps_per_s']:>12,.0f}" if "reset_slots" in row else f"{'-':>12}"
-        print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {row['env_steps_per_s']:>12,.0f} {batched}",
-              flush=True)
+        cells = (f"{row[k]:>12,.0f}" if k in row else f"{'-':>12}" for k in ("env_steps_per_s",
+                                                                             "step_batch_env_steps_per_s"))
+        print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {' '.join(cells)}", flush=True)
 
     from benchmarks.orca_throughput import rvo2_dostep_rate
 
     rvo2 = rvo2_dostep_rate(20, 2000 if args.quick else 20000)
     print(f"Python-RVO2 raw doStep, 20 agents, one core: {rvo2:,.0f} steps/s")
-    best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20), key=lambda r: r["env_steps_per_s"])
-    print(f"best ORCA-20 env: {best['env_steps_per_s']:,.0f} env-steps/s at batch {best['batch']} "
-          f"= {best['env_steps_per_s'] / rvo2:.1f}x RVO2's raw doStep")
+    rate = lambda r: max(r.get("env_steps_per_s", 0.0), r.get("step_batch_env_steps_per_s", 0.0))  # noqa: E731
+    best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20), key=rate)
+    print(f"best ORCA-20 env: {rate(best):,.0f} env-steps/s at batch {best['batch']} "
+          f"= {rate(best) / rvo2:.1f}x RVO2's raw doStep")
     parts = {} if args.quick else {p: breakdown(p, 20, 1024, repeats) for p in ("orca", "social_force")}
     for p, ms in parts.items():
         print(f"where the time goes, {p}, 20 humans, batch 1024 (ms per batched call): {ms}")
