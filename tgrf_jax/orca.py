@@ -24,11 +24,11 @@ How it is vectorised (RVO2's algorithm is sequential and branchy):
 * The four line components are built one per step of a 4-step loop (a ``lax.switch``): XLA:CPU splits a
   multi-output elementwise computation into many materialised passes (measured ~15 fusions, 15-20x slower
   than one component alone), while a single output fuses into one loop.
-* The chunking and "skip what has nothing to do" logic uses real ``lax.cond``s inside ``fori_loop``s
-  (bounded: at most one round per line).  Under ``vmap`` a cond would become a select and every agent would
-  pay for the worst one, so :func:`solve` carries a ``jax.custom_batching.custom_vmap`` rule: ``jax.vmap``
-  (nested too) hands the whole batch to one kernel, where the conditionals stay conditionals and the
-  chunks draw from all scenes.
+* The worklists are data-dependent loops (``while_loop``s that end when nothing is pending, at most one
+  round per line; a ``lax.switch`` over the chunk sizes; as many chunks as the pending problems fill).
+  Under ``vmap`` they would become selects and every agent would pay for the worst one, so :func:`solve`
+  carries a ``jax.custom_batching.custom_vmap`` rule: ``jax.vmap`` (nested too) hands the whole batch to
+  one kernel, where the loops stay loops and the chunks draw from all scenes.
 
 Every division and square root is guarded, so no NaN/inf appears even for coincident agents (where RVO2
 itself divides 0 by 0), zero velocities or agents without neighbours.
