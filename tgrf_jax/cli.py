@@ -51,9 +51,12 @@ def eval_main(argv: list[str] | None = None) -> int:
 
     import jax
 
+    from tgrf_jax import compile_cache
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.evaluate import evaluate, format_table
     from tgrf_jax.policies import baseline
+
+    compile_cache.enable()
 
     env = CrowdNavEnv(env_config, reward_config)
     print(f"{env} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}", flush=True)
@@ -94,7 +97,10 @@ def _eval_run(args) -> int:
 
     import jax
 
+    from tgrf_jax import compile_cache
     from tgrf_jax.train.loop import evaluate_state, format_eval, restore_run
+
+    compile_cache.enable()
 
     try:
         _, state = restore_run(args.config, args.step)
@@ -151,8 +157,12 @@ def train_main(argv: list[str] | None = None) -> int:
         print(config.to_yaml(), end="")
         return 0
 
+    from tgrf_jax import compile_cache
     from tgrf_jax.train.loop import default_run_dir, train_run
 
+    cache_dir = compile_cache.enable()
+    if cache_dir:
+        print(f"compilation cache: {cache_dir} (set {compile_cache.ENV_VAR}=off to disable)", flush=True)
     run_dir = pathlib.Path(args.resume or args.out_dir or default_run_dir(config))
     try:
         train_run(config, run_dir, resume=bool(args.resume), log=lambda m: print(m, flush=True))

@@ -720,9 +720,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     import jax
 
+    from tgrf_jax import compile_cache
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.policies import baseline
 
+    compile_cache.enable()
     env = CrowdNavEnv(r["env_config"], r["reward_config"])
     policies = []
     if r["run_dir"] is not None:

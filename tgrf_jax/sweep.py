@@ -1050,6 +1050,9 @@ def main(argv: list[str] | None = None) -> int:
         print("tgrf-sweep: error: a multi-host sweep needs --out (the same shared directory on every host)",
               file=sys.stderr)
         return 2
+    from tgrf_jax import compile_cache
+
+    compile_cache.enable()
     sweep_dir = pathlib.Path(args.resume or args.out or default_sweep_dir(spec.base_config))
     try:
         run_sweep(None if args.resume else spec, sweep_dir, resume=bool(args.resume),
