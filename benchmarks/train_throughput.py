@@ -21,16 +21,17 @@ import jax.numpy as jnp
 
 from benchmarks.common import machine_info, time_call, write_json
 from tgrf_jax.config import TrainConfig
-from tgrf_jax.train import make_train
+from tgrf_jax.train import make_train, shards
 
 
 def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,
-            breakdown: bool, repeats: int, epochs: int, minibatches: int, microbatch_envs: int) -> dict:
+            breakdown: bool, repeats: int, epochs: int, minibatches: int, microbatch_envs: int,
+            num_shards: int) -> dict:
     cfg = TrainConfig.from_dict({
         "env": {"num_humans": 20, "human_policy": human_policy, "predictor": "const_vel"},
         "network": {"name": name, "size": size},
-        "ppo": {"num_envs": num_envs, "num_steps": num_steps,
-                "num_minibatches": minibatches if num_envs % minibatches == 0 else 1,
+        "ppo": {"num_envs": num_envs, "num_steps": num_steps, "num_shards": num_shards,
+                "num_minibatches": minibatches if num_envs % (num_shards * minibatches) == 0 else 1,
                 "update_epochs": epochs, "microbatch_envs": microbatch_envs,
                 "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
     })
@@ -52,23 +53,33 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
     run_s = sorted(runs)[len(runs) // 2]
     out = {
         "network": name, "size": size, "num_envs": num_envs, "num_steps": num_steps, "human_policy": human_policy,
+        "num_shards": num_shards, "shard_placement": shards.describe(num_shards, tr.mesh),
         "update_epochs": cfg.ppo.update_epochs, "num_minibatches": cfg.ppo.num_minibatches,
         "microbatches": cfg.ppo.num_microbatches,
         "params": tr.net.num_params(state.params), "updates_per_call": updates, "compile_s": round(compile_s, 2),
         "update_s": round(run_s / updates, 5), "train_sps": round(steps / run_s, 1),
     }
     if breakdown:
-        rollout = jax.jit(lambda s, k: tr.rollout(s, k)[1:])
+        # the same pieces as in training: per shard, on the shards' devices
+        @jax.jit
+        def rollout(state, key):
+            return tr.across_shards(lambda s: (tr.rollout(s, tr.shard_key(key))[0], {}))(state)
+
         _, roll_s = time_call(rollout, state, jax.random.PRNGKey(1), repeats=repeats)
+
         @jax.jit
         def env_only(state, key):
-            def body(carry, k):
-                obs, env_state = carry
-                action = jnp.ones((num_envs, 2)) * 0.5
-                obs, env_state, reward, *_ = tr.env.step_batch(k, env_state, action, state.hparams.env,
-                                                               cfg.ppo.reset_slots)
-                return (obs, env_state), reward.sum()
-            return jax.lax.scan(body, (state.obs, state.env_state), jax.random.split(key, num_steps))[1]
+            def shard(s):
+                def body(carry, k):
+                    obs, env_state = carry
+                    action = jnp.ones((cfg.ppo.shard_envs, 2)) * 0.5
+                    obs, env_state, reward, *_ = tr.env.step_batch(k, env_state, action, s.hparams.env,
+                                                                   cfg.ppo.reset_slots)
+                    return (obs, env_state), reward.sum()
+                keys = jax.random.split(tr.shard_key(key), num_steps)
+                (obs, env_state), _ = jax.lax.scan(body, (s.obs, s.env_state), keys)
+                return s.replace(obs=obs, env_state=env_state), {}
+            return tr.across_shards(shard)(state)
 
         _, env_s = time_call(env_only, state, jax.random.PRNGKey(2), repeats=repeats)
         per_update = run_s / updates
@@ -90,6 +101,8 @@ def main(argv=None):
                         help="env counts (default: 64 256 1024; quick: the default config's)")
     parser.add_argument("--nets", nargs="*", help="name/size pairs, e.g. hh_attn/small mlp/small")
     default_ppo = TrainConfig().ppo
+    parser.add_argument("--shards", type=int, default=default_ppo.num_shards,
+                        help="ppo.num_shards, one CPU device each (default: the embedded default config's)")
     parser.add_argument("--epochs", type=int, default=default_ppo.update_epochs,
                         help="PPO epochs per update (default: the embedded default config's)")
     parser.add_argument("--minibatches", type=int, default=default_ppo.num_minibatches,
@@ -99,6 +112,7 @@ def main(argv=None):
     parser.add_argument("--microbatch-envs", type=int, default=default_ppo.microbatch_envs,
                         help="envs per gradient slice (default: the embedded default config's; 0: whole minibatch)")
     args = parser.parse_args(argv)
+    shards.request_cpu_devices(args.shards)  # before JAX touches its backend
     if args.quick:
         nets = args.nets or ["hh_attn/small"]
         envs = args.envs or [default_ppo.num_envs]
@@ -116,7 +130,7 @@ def main(argv=None):
             if size == "paper" and name == "hh_attn" and n > 256 and not args.envs:
                 continue  # minutes per point on 2 cores
             r = measure(name, size, n, args.human_policy, args.num_steps, updates, breakdown, repeats, args.epochs,
-                        args.minibatches, args.microbatch_envs)
+                        args.minibatches, args.microbatch_envs, args.shards)
             results.append(r)
             print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} {r.get('env_s', 0):>7.3f} "
                   f"{r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f}", flush=True)

@@ -17,7 +17,8 @@ def tiny_config(**sections) -> TrainConfig:
     base = {
         "env": {"num_humans": 0, "predictor": "none"},
         "network": {"name": "mlp", "size": "small"},
-        "ppo": {"num_envs": 8, "num_steps": 8, "total_steps": 8 * 8 * 4, "update_epochs": 2, "num_minibatches": 2},
+        "ppo": {"num_envs": 8, "num_steps": 8, "total_steps": 8 * 8 * 4, "update_epochs": 2, "num_minibatches": 2,
+                "num_shards": 1},
     }
     for k, v in sections.items():
         base.setdefault(k, {}).update(v)

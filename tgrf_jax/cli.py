@@ -158,8 +158,10 @@ def train_main(argv: list[str] | None = None) -> int:
         return 0
 
     from tgrf_jax import compile_cache
+    from tgrf_jax.train import shards
     from tgrf_jax.train.loop import default_run_dir, train_run
 
+    shards.request_cpu_devices(config.ppo.num_shards)  # one CPU device per env shard, before JAX starts
     cache_dir = compile_cache.enable()
     if cache_dir:
         print(f"compilation cache: {cache_dir} (set {compile_cache.ENV_VAR}=off to disable)", flush=True)

@@ -370,6 +370,11 @@ class PPOConfig:
     total_steps: int = spec(2_995_200, low=1, doc="environment steps of the whole run")
     update_epochs: int = spec(4, low=1, high=1000, doc="epochs over each rollout (reference: 5)")
     num_minibatches: int = spec(4, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
+    num_shards: int = spec(2, low=1, high=1024,
+                           doc="the envs are split into this many equal shards, each rolled out and cut into "
+                               "minibatches on its own; every minibatch gradient is averaged over the shards. "
+                               "Shards run on separate devices where there are enough (tgrf-train gives the CPU "
+                               "one device per shard), else vmapped on one. 1: no sharding")
     microbatch_envs: int = spec(16, low=0, high=65536,
                                 doc="envs per gradient slice: each minibatch's gradient is accumulated over equal "
                                     "slices of at most this many envs (the same update up to float rounding; small "
@@ -393,10 +398,10 @@ class PPOConfig:
 
     def __post_init__(self):
         check_fields(self, "ppo")
-        if self.num_envs % self.num_minibatches:
+        if self.num_envs % (self.num_shards * self.num_minibatches):
             raise ConfigError(
-                f"ppo.num_envs = {self.num_envs} must be divisible by ppo.num_minibatches = {self.num_minibatches} "
-                "(minibatches keep whole env sequences)"
+                f"ppo.num_envs = {self.num_envs} must be divisible by ppo.num_shards x ppo.num_minibatches = "
+                f"{self.num_shards} x {self.num_minibatches} (each shard's minibatches keep whole env sequences)"
             )
         if self.total_steps < self.batch_size:
             raise ConfigError(
@@ -409,9 +414,14 @@ class PPOConfig:
         return self.num_envs * self.num_steps
 
     @property
+    def shard_envs(self) -> int:
+        """Envs per shard."""
+        return self.num_envs // self.num_shards
+
+    @property
     def num_microbatches(self) -> int:
-        """Gradient slices per minibatch: the fewest equal slices of at most `microbatch_envs` envs."""
-        minibatch_envs = self.num_envs // self.num_minibatches
+        """Gradient slices per shard's minibatch: the fewest equal slices of at most `microbatch_envs` envs."""
+        minibatch_envs = self.shard_envs // self.num_minibatches
         if self.microbatch_envs == 0:
             return 1
         return next(n for n in range(1, minibatch_envs + 1)
@@ -419,8 +429,9 @@ class PPOConfig:
 
     @property
     def reset_slots(self) -> int:
-        """Fresh episodes sampled per rollout step (about 3% of envs finish per step in the paper scenario)."""
-        return -(-self.num_envs // self.reset_ratio)
+        """Fresh episodes sampled per rollout step and shard (about 3% of envs finish per step in the paper
+        scenario)."""
+        return -(-self.shard_envs // self.reset_ratio)
 
     @property
     def num_updates(self) -> int:

@@ -408,7 +408,8 @@ class SweepProgram:
         self.devices = tuple(devices)
         self.mesh = Mesh(np.array(self.devices), (AXIS,))
         self.sharding = NamedSharding(self.mesh, P(AXIS))
-        self.train = make_train(config)
+        # the run axis takes the devices; a run's env shards (ppo.num_shards) are vmapped on its device
+        self.train = make_train(config, devices=None)
         trainer = self.train.trainer
         self.trainer = trainer
         spec = P(AXIS)

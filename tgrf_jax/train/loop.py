@@ -30,6 +30,7 @@ import numpy as np
 
 from tgrf_jax.config import ConfigError, TrainConfig, load_yaml
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+from tgrf_jax.train import shards
 from tgrf_jax.train.ppo import METRIC_NAMES, TrainState, make_train
 
 CSV_FIELDS = (
@@ -197,7 +198,7 @@ def train_run(
         if step is None:
             raise CheckpointError(f"cannot resume: no checkpoint in {str(ckpt.directory)!r}")
         template = jax.eval_shape(t.init, key, t.default_hparams)
-        state = ckpt.restore(template, step)
+        state = t.place(ckpt.restore(template, step))
         start = int(state.update)
         if start != step:
             raise CheckpointError(f"checkpoint {str(ckpt.directory / str(step))!r} holds update {start}, not {step}")
@@ -210,7 +211,8 @@ def train_run(
 
     say(f"{t.trainer.env} | {config.network.name}/{config.network.size} "
         f"({t.trainer.net.num_params(state.params):,} params) | {p.num_envs} envs x {p.num_steps} steps, "
-        f"{total} updates = {total * batch:,} env steps | {jax.devices()[0].platform}")
+        f"{total} updates = {total * batch:,} env steps | {shards.describe(p.num_shards, t.trainer.mesh)} | "
+        f"{jax.devices()[0].platform}")
 
     csv_path = run_dir / METRICS_FILE
     new_csv = not csv_path.is_file()
@@ -297,7 +299,8 @@ def evaluate_state(config: TrainConfig, state: TrainState, episodes: int, seed: 
 
     env = CrowdNavEnv(config.env, config.reward)
     key = jax.random.key(seed)
-    results = {"learned": evaluate(env, LearnedPolicy(make_network_for(config), state.params), key, episodes)}
+    params = jax.device_get(state.params)  # off the shards' devices: evaluation runs on the default device
+    results = {"learned": evaluate(env, LearnedPolicy(make_network_for(config), params), key, episodes)}
     for name in baselines:
         results[name] = evaluate(env, baseline(name), key, episodes)
     return {"env": repr(env), "episodes": episodes, "seed": seed,

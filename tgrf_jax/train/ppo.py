@@ -28,6 +28,8 @@ from flax import struct
 from tgrf_jax.config import TrainConfig
 from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams, EnvState, Obs
 from tgrf_jax.nets import ActorCritic, make_network
+from tgrf_jax.train import shards
+from tgrf_jax.train.shards import SHARD_AXIS
 
 
 @struct.dataclass
@@ -64,11 +66,12 @@ class ReturnStats:
         z = jnp.zeros((), jnp.float32)
         return cls(mean=z, mean_sq=z, weight=z)
 
-    def update(self, targets):
+    def update(self, targets, mean=jnp.mean):
+        """`mean`: the batch mean (a mean over all shards when the batch is sharded)."""
         d = self.DECAY
         return ReturnStats(
-            mean=d * self.mean + (1 - d) * jnp.mean(targets),
-            mean_sq=d * self.mean_sq + (1 - d) * jnp.mean(jnp.square(targets)),
+            mean=d * self.mean + (1 - d) * mean(targets),
+            mean_sq=d * self.mean_sq + (1 - d) * mean(jnp.square(targets)),
             weight=d * self.weight + (1 - d),
         )
 
@@ -89,7 +92,10 @@ class ReturnStats:
 
 @struct.dataclass
 class TrainState:
-    """Complete state of a run between updates (checkpoint this and a resumed run is bit-identical)."""
+    """Complete state of a run between updates (checkpoint this and a resumed run is bit-identical).
+
+    The per-env fields (`ENV_FIELDS`, leading axis num_envs) are split into `ppo.num_shards` contiguous shards
+    during an update; the rest is the same on every shard."""
 
     params: dict
     opt_state: optax.OptState
@@ -114,6 +120,23 @@ class Transition(NamedTuple):
     done: jnp.ndarray  # terminated | truncated
     truncated: jnp.ndarray
     final_value: jnp.ndarray  # V(info.final_obs) where truncated, else 0
+
+
+ENV_FIELDS = ("env_state", "obs", "carry", "resets", "ep_return")
+
+
+def map_fields(ts: TrainState, env_fn, shared_fn) -> TrainState:
+    """A TrainState-shaped tree: `env_fn` applied to the leaves of the per-env fields, `shared_fn` to the rest."""
+    return ts.replace(**{
+        f.name: jax.tree_util.tree_map(env_fn if f.name in ENV_FIELDS else shared_fn, getattr(ts, f.name))
+        for f in dataclasses.fields(ts)
+    })
+
+
+def field_prefix(env_value, shared_value) -> TrainState:
+    """A TrainState prefix tree (one value per field), e.g. vmap axes or shardings."""
+    return TrainState(**{f.name: env_value if f.name in ENV_FIELDS else shared_value
+                         for f in dataclasses.fields(TrainState)})
 
 
 # Reduced per-update scalars. Episode fields are sums (of episodes finished in the update) so a chunk can add them.
@@ -212,11 +235,69 @@ def clip_by_global_norm(grads, max_norm):
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Trainer:
-    """The compiled pieces of one training configuration (see the module docstring)."""
+    """The compiled pieces of one training configuration (see the module docstring).
+
+    `update` works on one shard's TrainState (all of it when ppo.num_shards is 1) and meets the other shards in
+    collectives over SHARD_AXIS; `run_updates` takes and returns the whole TrainState and places the shards on
+    the devices of `mesh`, or vmaps them on one device when `mesh` is None (see `tgrf_jax.train.shards`).
+    """
 
     config: TrainConfig
     env: CrowdNavEnv
     net: ActorCritic
+    mesh: jax.sharding.Mesh | None = None
+
+    @property
+    def num_shards(self) -> int:
+        return self.config.ppo.num_shards
+
+    # Collectives over the shards; with one shard they are the identity (the unsharded program, bit for bit).
+    def _pmean(self, tree):
+        return tree if self.num_shards == 1 else jax.lax.pmean(tree, SHARD_AXIS)
+
+    def _psum(self, tree):
+        return tree if self.num_shards == 1 else jax.lax.psum(tree, SHARD_AXIS)
+
+    def _mean(self, x):
+        """Mean over the whole (all shards') batch; shards are equal-sized."""
+        return self._pmean(jnp.mean(x))
+
+    def shard_key(self, key):
+        """A key of this shard's own (the shards' envs and minibatches draw independent numbers)."""
+        return key if self.num_shards == 1 else jax.random.fold_in(key, jax.lax.axis_index(SHARD_AXIS))
+
+    @property
+    def state_shardings(self):
+        """TrainState prefix of NamedShardings (per-env fields split over the mesh), or None without a mesh."""
+        if self.mesh is None:
+            return None
+        from jax.sharding import NamedSharding, PartitionSpec as P
+
+        return field_prefix(NamedSharding(self.mesh, P(SHARD_AXIS)), NamedSharding(self.mesh, P()))
+
+    def place(self, ts: TrainState) -> TrainState:
+        """Put a TrainState (e.g. restored from a checkpoint) where `run_updates` expects it."""
+        return ts if self.mesh is None else jax.device_put(ts, self.state_shardings)
+
+    def across_shards(self, f):
+        """Lift `f(shard TrainState) -> (shard TrainState, shared metrics)` to the whole TrainState."""
+        s = self.num_shards
+        if s == 1:
+            return f
+        if self.mesh is not None:
+            from jax.sharding import PartitionSpec as P
+
+            spec = field_prefix(P(SHARD_AXIS), P())
+            # check_vma off: the shared fields come out of pmeans and equal updates, identical on every shard
+            return jax.shard_map(f, mesh=self.mesh, in_specs=(spec,), out_specs=(spec, P()), check_vma=False)
+
+        def vmapped(ts):
+            split = map_fields(ts, lambda x: x.reshape((s, x.shape[0] // s) + x.shape[1:]), lambda x: x)
+            ts, metrics = jax.vmap(f, in_axes=(field_prefix(0, None),), axis_name=SHARD_AXIS)(split)
+            ts = map_fields(ts, lambda x: x.reshape((s * x.shape[1],) + x.shape[2:]), lambda x: x[0])
+            return ts, jax.tree_util.tree_map(lambda x: x[0], metrics)
+
+        return vmapped
 
     @property
     def num_updates(self) -> int:
@@ -308,14 +389,18 @@ class Trainer:
         p = self.config.ppo
         hp = ts.hparams
         key, k_roll, k_perm = jax.random.split(ts.key, 3)
-        ts, traj, carry0, last_value, ep = self.rollout(ts, k_roll)
+        ts, traj, carry0, last_value, ep = self.rollout(ts, self.shard_key(k_roll))
 
         # --- advantages
         adv, returns = compute_gae(traj.reward, traj.value, traj.done, traj.truncated, traj.final_value,
                                    last_value, hp.gamma, hp.gae_lambda)
         if p.norm_adv:
-            adv = (adv - adv.mean()) / (adv.std() + 1e-5)
-        return_stats = ts.return_stats.update(returns) if p.norm_value else ts.return_stats
+            if self.num_shards == 1:
+                adv = (adv - adv.mean()) / (adv.std() + 1e-5)
+            else:
+                adv_mean = self._mean(adv)
+                adv = (adv - adv_mean) / (jnp.sqrt(self._mean(jnp.square(adv - adv_mean))) + 1e-5)
+        return_stats = ts.return_stats.update(returns, self._mean) if p.norm_value else ts.return_stats
         value_stats = return_stats if p.norm_value else None
 
         # --- learning rate (optional linear decay to 0 over the run)
@@ -353,14 +438,14 @@ class Trainer:
 
         def minibatch_step(carry, mb):
             params, opt_state = carry
-            (loss, aux), grads = minibatch_grad(params, mb)
+            (loss, aux), grads = self._pmean(minibatch_grad(params, mb))
             grads, g_norm = clip_by_global_norm(grads, hp.max_grad_norm)
             updates, opt_state = self._adam.update(grads, opt_state, params)
             params = optax.apply_updates(params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
             return (params, opt_state), dict(aux, loss=loss, grad_norm=g_norm)
 
         def epoch(carry, k):
-            perm = jax.random.permutation(k, p.num_envs)
+            perm = jax.random.permutation(self.shard_key(k), p.shard_envs)
             take_env = lambda x, axis: jnp.take(x, perm, axis=axis)  # noqa: E731
             # time-major data (T, B, ...) -> (n_mb, T, b, ...); carries (B, ...) -> (n_mb, b, ...)
             split_t = lambda x: split_time_major(take_env(x, 1), n_mb)  # noqa: E731
@@ -377,7 +462,7 @@ class Trainer:
             epoch, (ts.params, ts.opt_state), jax.random.split(k_perm, p.update_epochs)
         )
         metrics = {k: jnp.mean(v) for k, v in losses.items()}
-        metrics.update(ep, lr=jnp.asarray(lr, jnp.float32), reward_mean=jnp.mean(traj.reward))
+        metrics.update(self._psum(ep), lr=jnp.asarray(lr, jnp.float32), reward_mean=self._mean(traj.reward))
         ts = ts.replace(params=params, opt_state=opt_state, return_stats=return_stats, key=key,
                         update=ts.update + 1)
         return ts, metrics
@@ -386,13 +471,18 @@ class Trainer:
     def run_updates(self, ts: TrainState, n_updates: int) -> tuple[TrainState, dict]:
         """`n_updates` updates in one lax.scan (pure). Metrics reduced over the chunk: episode fields summed,
         the rest averaged over updates."""
-        ts, per_update = jax.lax.scan(lambda s, _: self.update(s), ts, None, length=n_updates)
-        return ts, reduce_metrics(per_update)
+        def shard_updates(ts):
+            ts, per_update = jax.lax.scan(lambda s, _: self.update(s), ts, None, length=n_updates)
+            return ts, reduce_metrics(per_update)
+
+        return self.across_shards(shard_updates)(ts)
 
     def train(self, key, hparams: HParams | None = None) -> tuple[TrainState, dict]:
         """The whole run as one pure function of (key, hparams); metrics per update (num_updates,)."""
         ts = self.init(key, hparams)
-        return jax.lax.scan(lambda s, _: self.update(s), ts, None, length=self.num_updates)
+        return self.across_shards(
+            lambda ts: jax.lax.scan(lambda s, _: self.update(s), ts, None, length=self.num_updates)
+        )(ts)
 
 
 def reduce_metrics(per_update: dict) -> dict:
@@ -411,22 +501,29 @@ class Train(NamedTuple):
     """What `make_train` returns: a pure `train(key, hparams)` plus the chunking seams."""
 
     train: callable  # (key, hparams) -> (TrainState, per-update metrics)
-    init: callable  # jitted (key, hparams) -> TrainState
+    init: callable  # jitted (key, hparams) -> TrainState, placed for run_chunk
     run_chunk: callable  # jitted (TrainState, n_updates static) -> (TrainState, chunk metrics)
     trainer: Trainer
     default_hparams: HParams
+    place: callable  # TrainState from elsewhere (a checkpoint) -> placed for run_chunk
 
 
-def make_train(config: TrainConfig) -> Train:
-    """Build the compiled training functions of `config` (validated already: a TrainConfig cannot be invalid)."""
+def make_train(config: TrainConfig, devices="auto") -> Train:
+    """Build the compiled training functions of `config` (validated already: a TrainConfig cannot be invalid).
+
+    `devices` carry the env shards when ppo.num_shards > 1: "auto" (one local device per shard if there are
+    enough, else all shards vmapped on the default device), None (always vmapped) or a list of num_shards devices.
+    """
     if not isinstance(config, TrainConfig):
         raise TypeError(f"make_train needs a TrainConfig, not {type(config).__name__}")
     env = CrowdNavEnv(config.env, config.reward)
-    trainer = Trainer(config, env, make_network_for(config))
+    mesh = shards.shard_mesh(config.ppo.num_shards, devices)
+    trainer = Trainer(config, env, make_network_for(config), mesh)
     return Train(
         train=trainer.train,
-        init=jax.jit(trainer.init),
+        init=jax.jit(trainer.init, out_shardings=trainer.state_shardings),
         run_chunk=jax.jit(trainer.run_updates, static_argnums=1),
         trainer=trainer,
         default_hparams=trainer.default_hparams,
+        place=trainer.place,
     )
