@@ -5,7 +5,9 @@ constant-velocity predictions (K = 5), the TGRF reward and a straight-to-goal ro
 (compile time separately). Timed calls start from the state one untimed call left (T steps after a reset:
 the crowd mid-crossing, where ORCA is slowest, as in training). For batches of 16 and more it also times
 `CrowdNavEnv.step_batch`, the trainer's auto-reset, which samples B / 8 fresh episodes per step instead of B
-(`ppo.reset_ratio: 8`). In the same run, Python-RVO2's raw 20-agent doStep rate is timed as the on-machine
+(`ppo.reset_ratio: 8`), and the same split over D CPU devices (`--devices`, default: one per core), each
+stepping B / D envs under `shard_map`, as the trainer's env shards do: one XLA program spreads its small ops
+over the cores poorly, D programs side by side do not. In the same run, Python-RVO2's raw 20-agent doStep rate is timed as the on-machine
 reference for a compiled ORCA step.
 
     python -m benchmarks.env_throughput --quick --out bench_results/env_quick.json
@@ -15,6 +17,7 @@ reference for a compiled ORCA step.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -24,6 +27,9 @@ import jax.numpy as jnp
 from benchmarks.common import machine_info, time_call, write_json
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax.policies import StraightPolicy
+from tgrf_jax.train import shards
+
+ENV_AXIS = "envs"
 
 
 def make_runner(env: CrowdNavEnv, n_steps: int, num_resets: int | None = None):
@@ -47,6 +53,29 @@ def make_runner(env: CrowdNavEnv, n_steps: int, num_resets: int | None = None):
     return run, params
 
 
+def make_sharded_runner(env: CrowdNavEnv, n_steps: int, num_resets: int, mesh):
+    """`make_runner`'s step_batch scan on every device of `mesh`, each over its slice of the batch (no
+    communication: the envs are independent), with `num_resets` fresh episodes per step and device."""
+    from jax.sharding import PartitionSpec as P
+
+    params = env.default_params
+    act = jax.vmap(StraightPolicy.action)
+
+    def shard(key, obs, state):
+        def body(carry, k):
+            obs, state = carry
+            obs, state, reward, *_ = env.step_batch(k, state, act(obs), params, num_resets)
+            return (obs, state), reward.mean()
+
+        keys = jax.random.split(jax.random.fold_in(key, jax.lax.axis_index(ENV_AXIS)), n_steps)
+        return jax.lax.scan(body, (obs, state), keys)
+
+    env_spec = P(ENV_AXIS)
+    run = jax.shard_map(shard, mesh=mesh, in_specs=(P(), env_spec, env_spec),
+                        out_specs=((env_spec, env_spec), env_spec), check_vma=False)
+    return jax.jit(run)
+
+
 def time_from_mid_crossing(run, obs, state, repeats: int) -> tuple[float, float]:
     """(compile_s, median run_s) of a runner, timed from the state its first (compiling) call leaves: the crowd
     mid-crossing, as a training run sees it; ORCA costs up to twice as much there as in the first steps after
@@ -63,8 +92,10 @@ def time_from_mid_crossing(run, obs, state, repeats: int) -> tuple[float, float]
     return max(first_s - run_s, 0.0), run_s
 
 
-def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int, plain: bool = True) -> dict:
-    """One grid point: `vmap(step)` (unless not `plain`) and, from batch 16, `step_batch`."""
+def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int, plain: bool = True,
+            mesh=None) -> dict:
+    """One grid point: `vmap(step)` (unless not `plain`) and, from batch 16, `step_batch`, also over the devices
+    of `mesh` (if given and the batch splits into slices of at least 16)."""
     env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": "const_vel"})
     params = env.default_params
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(0), batch), params)
@@ -79,6 +110,15 @@ def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int
         compile_s, run_s = time_from_mid_crossing(run, obs, state, repeats)
         row.setdefault("compile_s", round(compile_s, 3))
         row[name] = batch * n_steps / run_s
+    d = 0 if mesh is None else mesh.devices.size
+    if d > 1 and batch % d == 0 and batch // d >= 16:
+        from jax.sharding import NamedSharding, PartitionSpec as P
+
+        run = make_sharded_runner(env, n_steps, batch // d // 8, mesh)
+        placed = jax.device_put((obs, state), NamedSharding(mesh, P(ENV_AXIS)))
+        _, run_s = time_from_mid_crossing(run, *placed, repeats)
+        row["devices"] = d
+        row["step_batch_devices_env_steps_per_s"] = batch * n_steps / run_s
     return row
 
 
@@ -117,7 +157,13 @@ def main(argv=None):
                         help="20 humans: ORCA at batches 128 and 1024, Social Force at 1024; step_batch only, "
                              "shorter scans, no breakdown (< 1 minute)")
     parser.add_argument("--out", help="write results as JSON here")
+    parser.add_argument("--devices", type=int, default=len(os.sched_getaffinity(0)),
+                        help="CPU devices for the sharded step_batch column (default: one per core; 1: skip it)")
     args = parser.parse_args(argv)
+    shards.request_cpu_devices(args.devices)  # before JAX touches its backend
+    mesh = None
+    if args.devices > 1 and len(jax.devices()) >= args.devices:
+        mesh = jax.sharding.Mesh(jax.devices()[:args.devices], (ENV_AXIS,))
 
     if args.quick:
         grid = [("orca", 20, 128), ("orca", 20, 1024), ("social_force", 20, 1024)]
@@ -129,19 +175,24 @@ def main(argv=None):
     info = machine_info()
     print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")
     rows = []
-    print(f"{'policy':>13} {'humans':>6} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} {'step_batch':>12}")
+    d = "-" if mesh is None else mesh.devices.size
+    print(f"{'policy':>13} {'humans':>6} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} {'step_batch':>12} "
+          f"{f'on {d} devices':>14}")
     for policy, n, batch in grid:
-        row = measure(policy, n, batch, scan_length(batch, args.quick), repeats, plain=not args.quick)
+        row = measure(policy, n, batch, scan_length(batch, args.quick), repeats, plain=not args.quick, mesh=mesh)
         rows.append(row)
         cells = (f"{row[k]:>12,.0f}" if k in row else f"{'-':>12}" for k in ("env_steps_per_s",
                                                                              "step_batch_env_steps_per_s"))
-        print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {' '.join(cells)}", flush=True)
+        sharded = row.get("step_batch_devices_env_steps_per_s")
+        print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {' '.join(cells)} "
+              f"{'-' if sharded is None else f'{sharded:,.0f}':>14}", flush=True)
 
     from benchmarks.orca_throughput import rvo2_dostep_rate
 
     rvo2 = rvo2_dostep_rate(20, 2000 if args.quick else 20000)
     print(f"Python-RVO2 raw doStep, 20 agents, one core: {rvo2:,.0f} steps/s")
-    rate = lambda r: max(r.get("env_steps_per_s", 0.0), r.get("step_batch_env_steps_per_s", 0.0))  # noqa: E731
+    rate = lambda r: max(r.get("env_steps_per_s", 0.0), r.get("step_batch_env_steps_per_s", 0.0),  # noqa: E731
+                         r.get("step_batch_devices_env_steps_per_s", 0.0))
     best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20), key=rate)
     print(f"best ORCA-20 env: {rate(best):,.0f} env-steps/s at batch {best['batch']} "
           f"= {rate(best) / rvo2:.1f}x RVO2's raw doStep")
