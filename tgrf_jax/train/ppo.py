@@ -11,6 +11,10 @@ previous step ended an episode), compute GAE (time-limit truncations bootstrap f
 with the carry after the step; terminations cut the bootstrap), then `update_epochs` epochs over
 `num_minibatches` minibatches of whole env sequences, each replayed from the carry stored at rollout step 0.
 
+With `ppo.num_shards` > 1 the envs are split into shards that do all of the above on their own and meet in
+collectives (gradient, advantage and value-target means; episode counts), on one device each or vmapped on one
+(`Trainer.across_shards`, `tgrf_jax.train.shards`).
+
 Everything stochastic draws from the key inside `TrainState`, so a run is a deterministic function of its seed
 and hyper-parameters, and a checkpointed `TrainState` resumes bit-for-bit.
 """
