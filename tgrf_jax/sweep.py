@@ -53,6 +53,7 @@ import functools
 import itertools
 import json
 import math
+import os
 import pathlib
 import sys
 import time
@@ -1041,6 +1042,11 @@ def main(argv: list[str] | None = None) -> int:
         print(spec.describe())
         return 0
 
+    # One CPU device per core before JAX starts: the runs split over the devices, and XLA:CPU runs several
+    # programs side by side far better than it spreads one over the cores (a user's own count wins).
+    from tgrf_jax.train import shards
+
+    shards.request_cpu_devices(len(os.sched_getaffinity(0)))
     if args.coordinator or args.distributed:
         try:
             init_distributed(args.coordinator, args.num_processes, args.process_id)
