@@ -32,8 +32,9 @@ from tgrf_jax.train import shards
 ENV_AXIS = "envs"
 
 
-def make_runner(env: CrowdNavEnv, n_steps: int, num_resets: int | None = None):
-    """A jitted scan of n_steps auto-reset steps: per-env resets (`step`), or `step_batch` with num_resets."""
+def step_scan(env: CrowdNavEnv, n_steps: int, num_resets: int | None = None):
+    """(key, obs, state) -> scan of n_steps auto-reset steps: per-env resets (`step`), or `step_batch` with
+    num_resets fresh episodes per step."""
     params = env.default_params
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
     act = jax.vmap(StraightPolicy.action)
@@ -46,29 +47,26 @@ def make_runner(env: CrowdNavEnv, n_steps: int, num_resets: int | None = None):
             obs, state, reward, *_ = env.step_batch(key, state, act(obs), params, num_resets)
         return (obs, state), reward.mean()
 
-    @jax.jit
     def run(key, obs, state):
         return jax.lax.scan(body, (obs, state), jax.random.split(key, n_steps))
 
-    return run, params
+    return run
+
+
+def make_runner(env: CrowdNavEnv, n_steps: int, num_resets: int | None = None):
+    """`step_scan`, jitted."""
+    return jax.jit(step_scan(env, n_steps, num_resets)), env.default_params
 
 
 def make_sharded_runner(env: CrowdNavEnv, n_steps: int, num_resets: int, mesh):
-    """`make_runner`'s step_batch scan on every device of `mesh`, each over its slice of the batch (no
-    communication: the envs are independent), with `num_resets` fresh episodes per step and device."""
+    """`step_scan` with step_batch on every device of `mesh`, each over its slice of the batch with its own key
+    (no communication: the envs are independent) and `num_resets` fresh episodes per step and device."""
     from jax.sharding import PartitionSpec as P
 
-    params = env.default_params
-    act = jax.vmap(StraightPolicy.action)
+    scan = step_scan(env, n_steps, num_resets)
 
     def shard(key, obs, state):
-        def body(carry, k):
-            obs, state = carry
-            obs, state, reward, *_ = env.step_batch(k, state, act(obs), params, num_resets)
-            return (obs, state), reward.mean()
-
-        keys = jax.random.split(jax.random.fold_in(key, jax.lax.axis_index(ENV_AXIS)), n_steps)
-        return jax.lax.scan(body, (obs, state), keys)
+        return scan(jax.random.fold_in(key, jax.lax.axis_index(ENV_AXIS)), obs, state)
 
     env_spec = P(ENV_AXIS)
     run = jax.shard_map(shard, mesh=mesh, in_specs=(P(), env_spec, env_spec),
