@@ -6,6 +6,11 @@ For each (network, size, num_envs) on the paper scenario (20 humans, const_vel p
   * ``env_s`` / ``rollout_s`` / ``update_s`` per update: env stepping alone (a scan of the same number of
     auto-reset steps with fixed actions), the rollout (env + policy forward + sampling), and the rest
     (GAE, epochs x minibatches of sequence replay + backward + Adam) = update time - rollout time.
+  * ``learn_gflops``: the learning's arithmetic rate (FLOPs of one update's gradient slices, from XLA's cost
+    analysis, over ``learn_s``), next to ``matmul_reference_gflops``, the rate of one matmul of the small net's
+    widest layer shape compiled alone, timed in the same run; ``learn_bound_sps`` is the env-steps/s at which
+    the learning alone would need that reference rate: a ceiling on training throughput at these epochs and
+    this network on this machine, whatever the environment costs.
 
     python -m benchmarks.train_throughput --quick --out bench_results/train_quick.json
     python -m benchmarks.train_throughput --out bench_results/train_full.json
@@ -22,6 +27,42 @@ import jax.numpy as jnp
 from benchmarks.common import machine_info, time_call, write_json
 from tgrf_jax.config import TrainConfig
 from tgrf_jax.train import make_train, shards
+from tgrf_jax.train.ppo import Transition, ppo_loss
+
+
+def learner_flops_per_update(tr, state) -> float:
+    """FLOPs of one update's learning (epochs x minibatches x gradient slices x shards), from XLA's cost analysis
+    of one gradient slice (forward + backward of the PPO loss). The recurrent cell's time scan is counted once
+    (XLA's analysis does not multiply loop bodies), which undercounts the small GRU by a few percent."""
+    p = tr.config.ppo
+    envs = p.shard_envs // p.num_minibatches // p.num_microbatches
+    t = p.num_steps
+    obs = tr.net.dummy_obs(1)
+    obs = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((t, envs) + x.shape[1:], x.dtype), obs)
+    f32 = lambda: jax.ShapeDtypeStruct((t, envs), jnp.float32)  # noqa: E731
+    flag = lambda: jax.ShapeDtypeStruct((t, envs), bool)  # noqa: E731
+    batch = Transition(obs=obs, resets=flag(), action=jax.ShapeDtypeStruct((t, envs, 2), jnp.float32),
+                       log_prob=f32(), value=f32(), reward=f32(), done=flag(), truncated=flag(), final_value=f32())
+    carry = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((envs,) + x.shape[1:], x.dtype),
+                                   tr.net.initialize_carry(1))
+    stats = state.return_stats if p.norm_value else None
+    grad = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
+    fn = jax.jit(lambda params, c0, b, a, r: grad(tr.net, params, c0, b, a, r, state.hparams, p.clip_value, stats))
+    cost = fn.lower(state.params, carry, batch, f32(), f32()).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost
+    return float(cost["flops"]) * p.num_microbatches * p.num_minibatches * p.update_epochs * p.num_shards
+
+
+def matmul_reference_gflops(rows: int = 3840, repeats: int = 20) -> float:
+    """GFLOP/s of one (rows, 64) x (64, 192) float32 matmul + bias + ReLU, the shape of HH Attn small's widest
+    per-human layer (the attention's packed q/k/v projection), compiled alone: what XLA:CPU reaches on this
+    machine for the learner's kind of arithmetic when nothing else is in the way."""
+    x = jax.random.normal(jax.random.PRNGKey(0), (rows, 64))
+    w = jax.random.normal(jax.random.PRNGKey(1), (64, 192))
+    b = jnp.zeros((192,))
+    fn = jax.jit(lambda x, w, b: jax.nn.relu(x @ w + b))
+    _, run_s = time_call(fn, x, w, b, repeats=repeats)
+    return 2.0 * rows * 64 * 192 / run_s / 1e9
 
 
 def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,
@@ -83,10 +124,18 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
 
         _, env_s = time_call(env_only, state, jax.random.PRNGKey(2), repeats=repeats)
         per_update = run_s / updates
+        learn_s = max(per_update - roll_s, 0.0)
+        flops = learner_flops_per_update(tr, state)
+        ref = matmul_reference_gflops()
         out.update(
             env_s=round(env_s, 5), rollout_s=round(roll_s, 5), policy_in_rollout_s=round(roll_s - env_s, 5),
-            learn_s=round(max(per_update - roll_s, 0.0), 5),
+            learn_s=round(learn_s, 5),
             env_only_sps=round(num_envs * num_steps / env_s, 1),
+            learn_gflop_per_update=round(flops / 1e9, 3),
+            learn_gflops=round(flops / learn_s / 1e9, 1) if learn_s > 0 else None,
+            matmul_reference_gflops=round(ref, 1),
+            # env-steps/s at which the learning alone would have to run at the reference matmul's rate
+            learn_bound_sps=round(ref * 1e9 / (flops / (num_envs * num_steps)), 1),
         )
     return out
 
@@ -123,7 +172,8 @@ def main(argv=None):
         updates, breakdown, repeats = 2, True, 3
     results = []
     print(f"{'net':>14} {'envs':>5} {'train sps':>10} {'compile s':>9} {'env s':>7} {'rollout s':>9} "
-          f"{'learn s':>8} (per update)", flush=True)
+          f"{'learn s':>8} (per update) {'learn GFLOP/s':>13} {'matmul ref':>10} {'learn bound sps':>15}",
+          flush=True)
     for spec in nets:
         name, size = spec.split("/")
         for n in envs:
@@ -133,7 +183,9 @@ def main(argv=None):
                         args.minibatches, args.microbatch_envs, args.shards)
             results.append(r)
             print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} {r.get('env_s', 0):>7.3f} "
-                  f"{r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f}", flush=True)
+                  f"{r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f} {'':>12} "
+                  f"{r.get('learn_gflops') or 0:>13.1f} {r.get('matmul_reference_gflops', 0):>10.1f} "
+                  f"{r.get('learn_bound_sps', 0):>15,.0f}", flush=True)
     write_json(args.out, {"machine": machine_info(), "benchmark": "train_throughput", "quick": args.quick,
                           "results": results})
 
