@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["all_over_batch", "cond_any"]
+__all__ = ["cond_any"]
 
 
 def cond_any(pred, true_fn, false_fn, *operands):
@@ -47,20 +47,3 @@ def cond_any(pred, true_fn, false_fn, *operands):
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     return branch(pred, *operands)
-
-
-@jax.custom_batching.custom_vmap
-def all_over_batch(pred):
-    """``pred`` (a bool scalar); under ``vmap`` (nested too) the AND over the whole batch, unbatched.
-
-    A ``lax.cond`` on it stays a conditional under ``vmap`` with every element taking the same branch, which
-    suits a choice between two exact ways of computing the same thing (a fast path that some element cannot take
-    sends all of them to the general one). Unlike :func:`cond_any`, the branches may be differentiated: only the
-    predicate goes through the custom batching rule.
-    """
-    return pred
-
-
-@all_over_batch.def_vmap
-def _all_over_batch_rule(axis_size, in_batched, pred):
-    return all_over_batch(jnp.all(pred, axis=0) if in_batched[0] else pred), False

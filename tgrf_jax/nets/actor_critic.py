@@ -22,12 +22,11 @@ import jax.numpy as jnp
 import distrax
 from flax import linen as nn
 
-from tgrf_jax.batching import all_over_batch
 from tgrf_jax.env.types import Obs
 from tgrf_jax.nets.common import count_params, reset_carry
 from tgrf_jax.nets.dsrnn import DSRNN_SIZES, DSRNNNet
 from tgrf_jax.nets.frames import FRAMES, action_to_world, to_goal_frame
-from tgrf_jax.nets.hh_attn import HH_ATTN_SIZES, HHAttnNet, attended_mask, packed_rows
+from tgrf_jax.nets.hh_attn import HH_ATTN_SIZES, HHAttnNet
 from tgrf_jax.nets.mlp import MLP_SIZES, MLPNet
 
 NETWORK_NAMES = ("hh_attn", "dsrnn", "mlp")
@@ -124,21 +123,6 @@ class ActorCritic:
         carry, (mean, log_std, value) = self._step(params, carry, obs, resets)
         return carry, self._dist(mean, log_std), value
 
-    def _encode_sequence(self, params, obs):
-        """The encoder over a whole (T, B) sequence: with packed per-human rows where the module supports them
-        and every visible row of the batch (of every batch, under vmap) fits the buffer, else dense."""
-        if not isinstance(self.module, HHAttnNet):
-            return self.module.apply(params, obs, method="encode")
-        mask = attended_mask(self.module.size, obs.human_mask)
-        rows = packed_rows(self.module.size, mask)
-        if not rows:
-            return self.module.apply(params, obs, method="encode")
-        return jax.lax.cond(
-            all_over_batch(jnp.sum(mask) <= rows),
-            lambda: self.module.apply(params, obs, rows, method="encode"),
-            lambda: self.module.apply(params, obs, method="encode"),
-        )
-
     def apply_sequence(self, params, carry0, obs_seq: Obs, resets_seq):
         """Time-major sequence: obs (T, B, ...), resets (T, B) bool. Returns (carry_T, pi [(T, B)], values (T, B)).
 
@@ -149,7 +133,7 @@ class ActorCritic:
         resets_seq = jnp.asarray(resets_seq, bool)
         if hasattr(self.module, "encode"):
             obs_seq, axes = self._to_frame(obs_seq)
-            x = self._encode_sequence(params, obs_seq)
+            x = self.module.apply(params, obs_seq, method="encode")
 
             def recur(carry, xs):
                 x_t, resets = xs

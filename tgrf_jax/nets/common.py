@@ -103,44 +103,31 @@ class MultiHeadAttention(nn.Module):
 
     q, k, v: (..., L, E); key_mask: (..., L) bool. Returns (..., L, E). A query whose keys are all masked gets a
     zero attention vector (PyTorch would give NaN), so its output is the output-projection bias.
-
-    The three stages are separate methods because the projections act on each row alone: a caller may run them
-    on a packed subset of the rows (`HHAttnNet`'s visible humans) and only `attend` on the (..., L, ...) layout.
     """
 
     embed: int
     heads: int
 
-    def setup(self):
-        E = self.embed
-        if E % self.heads:
-            raise ValueError(f"embed ({E}) must be divisible by heads ({self.heads})")
+    @nn.compact
+    def __call__(self, q: jnp.ndarray, k: jnp.ndarray, v: jnp.ndarray, key_mask: jnp.ndarray) -> jnp.ndarray:
+        E, nh = self.embed, self.heads
+        if E % nh:
+            raise ValueError(f"embed ({E}) must be divisible by heads ({nh})")
+        hd = E // nh
         # xavier-uniform over the packed (3E, E) matrix: fan_in E, fan_out 3E
         bound = math.sqrt(6.0 / (E + 3 * E))
-        self.in_proj_kernel = self.param("in_proj_kernel", _uniform(bound), (E, 3 * E))
-        self.in_proj_bias = self.param("in_proj_bias", nn.initializers.zeros, (3 * E,))
-        self.out_proj = nn.Dense(E, kernel_init=_uniform(1.0 / math.sqrt(E)), bias_init=nn.initializers.zeros)
-
-    def project(self, q: jnp.ndarray, k: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
-        """Rows (..., E) each -> packed projected rows (..., 3E): [q W_q + b_q, k W_k + b_k, v W_v + b_v]."""
-        if q is k and k is v:  # self-attention on one input: one (E, 3E) matmul
-            return q @ self.in_proj_kernel + self.in_proj_bias
-        wq, wk, wv = jnp.split(self.in_proj_kernel, 3, axis=-1)
-        bq, bk, bv = jnp.split(self.in_proj_bias, 3)
-        return jnp.concatenate([q @ wq + bq, k @ wk + bk, v @ wv + bv], axis=-1)
-
-    def attend(self, qkv: jnp.ndarray, key_mask: jnp.ndarray) -> jnp.ndarray:
-        """Projected rows (..., L, 3E) and key mask (..., L) -> per-query attention output before the output
-        projection (..., L, E)."""
-        E, nh = self.embed, self.heads
-        hd = E // nh
-        qp, kp, vp = (x.reshape(x.shape[:-1] + (nh, hd)) for x in jnp.split(qkv, 3, axis=-1))
+        w_in = self.param("in_proj_kernel", _uniform(bound), (E, 3 * E))
+        b_in = self.param("in_proj_bias", nn.initializers.zeros, (3 * E,))
+        wq, wk, wv = jnp.split(w_in, 3, axis=-1)
+        bq, bk, bv = jnp.split(b_in, 3)
+        qp = (q @ wq + bq).reshape(q.shape[:-1] + (nh, hd))
+        kp = (k @ wk + bk).reshape(k.shape[:-1] + (nh, hd))
+        vp = (v @ wv + bv).reshape(v.shape[:-1] + (nh, hd))
         scores = jnp.einsum("...qhd,...khd->...hqk", qp, kp) / math.sqrt(hd)
         weights = masked_softmax(scores, key_mask[..., None, None, :])
-        return jnp.einsum("...hqk,...khd->...qhd", weights, vp).reshape(qkv.shape[:-1] + (E,))
-
-    def __call__(self, q: jnp.ndarray, k: jnp.ndarray, v: jnp.ndarray, key_mask: jnp.ndarray) -> jnp.ndarray:
-        return self.out_proj(self.attend(self.project(q, k, v), key_mask))
+        out = jnp.einsum("...hqk,...khd->...qhd", weights, vp).reshape(q.shape[:-1] + (E,))
+        out_bound = 1.0 / math.sqrt(E)
+        return nn.Dense(E, kernel_init=_uniform(out_bound), bias_init=nn.initializers.zeros, name="out_proj")(out)
 
 
 def robot_human_attention(

@@ -46,7 +46,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
@@ -80,64 +79,6 @@ class HHAttnSize:
     # Attend to at most this many humans, the nearest visible ones (observation rows are sorted visible first by
     # distance); 0: all N rows.
     max_humans: int = 0
-    # Sequence replays (the PPO epochs) run the per-human layers only on the visible rows, packed into a buffer
-    # of this fraction of all rows; a batch with more visible rows takes the dense path (same numbers up to
-    # rounding). 0: always dense.
-    packed_row_fraction: float = 0.0
-
-
-def attended_mask(size: HHAttnSize, human_mask):
-    """The visibility mask of the human rows the attention reads (the first `max_humans`, if set)."""
-    mask = human_mask.astype(bool)
-    return mask[..., :size.max_humans] if 0 < size.max_humans < mask.shape[-1] else mask
-
-
-@jax.custom_vjp
-def _gather_rows(x, rows, inverse):
-    """x[rows] (zeros where rows is out of range), where `inverse` maps back: the transpose is x'[inverse]."""
-    return jnp.take(x, rows, axis=0, mode="fill", fill_value=0)
-
-
-def _gather_rows_fwd(x, rows, inverse):
-    return _gather_rows(x, rows, inverse), (rows, inverse)
-
-
-def _gather_rows_bwd(res, g):
-    rows, inverse = res
-    return _gather_rows(g, inverse, rows), None, None
-
-
-_gather_rows.defvjp(_gather_rows_fwd, _gather_rows_bwd)
-
-
-def row_packing(mask, capacity: int):
-    """(pack, unpack) between rows laid out as `mask` (..., L) and a buffer of `capacity` rows holding the rows
-    where mask is True, in order (the caller makes sure they fit).
-
-    pack: (..., L, F) -> (capacity, F), zeros after the last row; unpack: (capacity, F) -> (..., L, F), zeros where
-    mask is False. Both are gathers and each is the other's transpose, which their VJP uses: autodiff would
-    transpose a gather into a scatter-add, which XLA:CPU runs row by row.
-    """
-    n_rows = mask.size
-    flat = mask.reshape(n_rows)
-    inclusive = jnp.cumsum(flat, dtype=jnp.int32)
-    slot_of_row = jnp.where(flat, inclusive - 1, capacity)  # capacity: no slot (gathers a zero)
-    row_of_slot = jnp.searchsorted(inclusive, jnp.arange(1, capacity + 1, dtype=jnp.int32), side="left",
-                                   method="scan")  # n_rows past the last row (gathers a zero)
-
-    def pack(x):
-        return _gather_rows(x.reshape((n_rows,) + x.shape[mask.ndim:]), row_of_slot, slot_of_row)
-
-    def unpack(x):
-        return _gather_rows(x, slot_of_row, row_of_slot).reshape(mask.shape + x.shape[1:])
-
-    return pack, unpack
-
-
-def packed_rows(size: HHAttnSize, mask) -> int:
-    """Rows of the packed per-human buffer for a batch whose attended-rows mask is `mask` (0: dense)."""
-    capacity = min(mask.size, 8 * math.ceil(size.packed_row_fraction * mask.size / 8))
-    return capacity if 0 < capacity < mask.size else 0
 
 
 HH_ATTN_SIZES = {
@@ -148,7 +89,6 @@ HH_ATTN_SIZES = {
     "small": HHAttnSize(
         robot_embed=64, hh_embed_hidden=64, hh_attn=64, hh_heads=2, human_embed=64, rh_attn=32, node_embed=32,
         gru=64, output=64, head_hidden=64, qkv_pre_projection=False, max_humans=16,
-        packed_row_fraction=0.65,
     ),
 }
 
@@ -188,44 +128,30 @@ class HHAttnNet(nn.Module):
         self.node_output = torch_dense(s.output, s.gru)
         self.heads = ActorCriticHeads((s.head_hidden, s.head_hidden), self.action_dim)
 
-    def encode(self, obs, packed_rows: int = 0):
-        """Observation (any leading shape) -> GRU input (..., 2e).
-
-        `packed_rows` > 0 runs the per-human layers (embedding, attention projections, spatial layer, robot-human
-        keys) only on the visible humans' rows, gathered into a buffer of that many rows; the caller guarantees
-        that they fit (see `ActorCritic.apply_sequence`). Invisible rows never reach the output (both attentions
-        mask them), so this equals the dense evaluation up to float rounding, for ~the visible fraction of the
-        per-human FLOPs.
-        """
+    def encode(self, obs):
+        """Observation (any leading shape) -> GRU input (..., 2e)."""
         s = self.size
-        mask = attended_mask(self.size, obs.human_mask)
+        mask = obs.human_mask.astype(bool)
         num_humans = obs.humans.shape[-2]  # the attention temperature keeps the env's N (reference quirk)
-        humans = masked_humans(obs.humans[..., :mask.shape[-1], :].astype(jnp.float32), mask)
+        humans = masked_humans(obs.humans.astype(jnp.float32), mask)
+        if 0 < s.max_humans < num_humans:
+            mask, humans = mask[..., :s.max_humans], humans[..., :s.max_humans, :]
 
         robot = jnp.concatenate([obs.robot_vel, obs.robot_node], axis=-1).astype(jnp.float32)
         r_emb = nn.relu(self.robot_linear(robot))
 
-        def embed_and_project(rows):
-            """Per-human rows -> packed q/k/v projections (3A)."""
-            e = nn.relu(self.hh_embed_1(nn.relu(self.hh_embed_0(rows))))
-            if s.qkv_pre_projection:
-                return self.hh_mha.project(self.hh_q(e), self.hh_k(e), self.hh_v(e))
-            return self.hh_mha.project(e, e, e)
-
-        def human_features(attended):
-            """Per-human attention outputs -> (human features F, robot-human attention keys a)."""
-            hum = nn.relu(self.spatial_linear(self.hh_mha.out_proj(attended)))
-            return hum, self.rh_key(hum)
-
-        if packed_rows:
-            pack, unpack = row_packing(mask, packed_rows)
-            qkv = unpack(embed_and_project(pack(humans)))
-            hum, keys = (unpack(x) for x in human_features(pack(self.hh_mha.attend(qkv, mask))))
+        # human-human multi-head self-attention
+        e = nn.relu(self.hh_embed_1(nn.relu(self.hh_embed_0(humans))))
+        if s.qkv_pre_projection:
+            q, k, v = self.hh_q(e), self.hh_k(e), self.hh_v(e)
         else:
-            hum, keys = human_features(self.hh_mha.attend(embed_and_project(humans), mask))
+            q = k = v = e
+        z = self.hh_mha(q, k, v, mask)
+        hum = nn.relu(self.spatial_linear(z))
 
         # robot-human attention (score multiplied by N / sqrt(a): reference quirk, see module docstring)
-        attn = robot_human_attention(self.rh_query(r_emb), keys, hum, mask, scale=num_humans / math.sqrt(s.rh_attn))
+        attn = robot_human_attention(self.rh_query(r_emb), self.rh_key(hum), hum, mask,
+                                     scale=num_humans / math.sqrt(s.rh_attn))
         enc = nn.relu(self.node_encoder(r_emb))
         att_emb = nn.relu(self.node_attn_embed(attn))
         return jnp.concatenate([enc, att_emb], axis=-1)
