@@ -399,7 +399,7 @@ class Trainer:
         adv, returns = compute_gae(traj.reward, traj.value, traj.done, traj.truncated, traj.final_value,
                                    last_value, hp.gamma, hp.gae_lambda)
         if p.norm_adv:
-            if self.num_shards == 1:
+            if self.num_shards == 1:  # jnp.std's own formula: keeps the unsharded program bit for bit
                 adv = (adv - adv.mean()) / (adv.std() + 1e-5)
             else:
                 adv_mean = self._mean(adv)
@@ -476,17 +476,19 @@ class Trainer:
         """`n_updates` updates in one lax.scan (pure). Metrics reduced over the chunk: episode fields summed,
         the rest averaged over updates."""
         def shard_updates(ts):
-            ts, per_update = jax.lax.scan(lambda s, _: self.update(s), ts, None, length=n_updates)
+            ts, per_update = self._scan_updates(ts, n_updates)
             return ts, reduce_metrics(per_update)
 
         return self.across_shards(shard_updates)(ts)
 
+    def _scan_updates(self, ts: TrainState, n_updates: int) -> tuple[TrainState, dict]:
+        """`n_updates` updates of one shard in a lax.scan; metrics per update."""
+        return jax.lax.scan(lambda s, _: self.update(s), ts, None, length=n_updates)
+
     def train(self, key, hparams: HParams | None = None) -> tuple[TrainState, dict]:
         """The whole run as one pure function of (key, hparams); metrics per update (num_updates,)."""
         ts = self.init(key, hparams)
-        return self.across_shards(
-            lambda ts: jax.lax.scan(lambda s, _: self.update(s), ts, None, length=self.num_updates)
-        )(ts)
+        return self.across_shards(lambda ts: self._scan_updates(ts, self.num_updates))(ts)
 
 
 def reduce_metrics(per_update: dict) -> dict:
