@@ -94,6 +94,9 @@ def _sweep_cli(args, env_extra, **kw):
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweeps") / "sweep"
+    # start JAX first, as the rest of the suite would have: main's request for one CPU device per core then has
+    # no effect, so this file alone gives the same one-device sweep as the whole suite and leaves XLA_FLAGS alone
+    jax.devices()
     assert main([TINY, *GRID, *SETS, "--out", str(out)]) == 0
     return out
 
