@@ -276,3 +276,56 @@ def test_apply_sequence_equals_stepwise_and_has_finite_gradients(name):
         np.testing.assert_allclose(values[t], value, rtol=1e-5, atol=1e-6)
     for a, b in zip(jax.tree_util.tree_leaves(carry_T), jax.tree_util.tree_leaves(carry)):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------- attention algebra
+
+
+def test_key_into_query_equals_the_reference_key_layer():
+    """HH Attn scores humans with (W q) . hum instead of q . (W^T hum + b): the same attention weights, and the
+    unused bias gets an exactly zero gradient (softmax is shift-invariant)."""
+    from tgrf_jax.nets.common import robot_human_attention
+    from tgrf_jax.nets.hh_attn import KeyIntoQuery
+
+    F, a = 6, 4
+    k = jax.random.split(jax.random.PRNGKey(21), 4)
+    layer = KeyIntoQuery(a, F)
+    params = layer.init(k[0], jnp.zeros((1, a)))
+    params = jax.tree_util.tree_map(lambda x: x + jax.random.normal(k[1], x.shape), params)  # bias non-zero
+    query = jax.random.normal(k[2], (B, a))
+    hum = jax.random.normal(k[3], (B, 5, F))
+    mask = jnp.array([[True] * 5, [True, True, False, False, False], [False] * 5])
+
+    def folded(p):
+        return robot_human_attention(layer.apply(p, query), hum, hum, mask, scale=2.5)
+
+    def explicit(p):
+        keys = hum @ p["params"]["kernel"] + p["params"]["bias"]
+        return robot_human_attention(query, keys, hum, mask, scale=2.5)
+
+    np.testing.assert_allclose(folded(params), explicit(params), rtol=1e-5, atol=1e-6)
+    assert not np.allclose(folded(params)[0], 0.0)
+    grads = jax.grad(lambda p: jnp.sum(jnp.sin(explicit(p))))(params)
+    np.testing.assert_allclose(grads["params"]["bias"], 0.0, atol=1e-6)
+    assert float(jnp.abs(grads["params"]["kernel"]).sum()) > 0
+
+
+def test_multi_head_attention_options():
+    """The packed one-matmul path for self-attention equals separate projections; narrower query/key heads and
+    the unprojected output have the documented shapes and algebra."""
+    from tgrf_jax.nets.common import MultiHeadAttention
+
+    x = jax.random.normal(jax.random.PRNGKey(31), (B, 5, 8))
+    mask = jnp.arange(5) < jnp.array([5, 2, 0])[:, None]
+    for qk in (0, 2):
+        full = MultiHeadAttention(8, 2, qk_head_dim=qk)
+        params = full.init(jax.random.PRNGKey(32), x, x, x, mask)
+        assert params["params"]["in_proj_kernel"].shape == (8, 2 * 2 * (qk or 4) + 8)
+        packed = full.apply(params, x, x, x, mask)  # q is k is v: one matmul
+        separate = full.apply(params, x, x + 0.0, x * 1.0, mask)
+        np.testing.assert_allclose(packed, separate, rtol=1e-5, atol=1e-6)
+        bare = MultiHeadAttention(8, 2, qk_head_dim=qk, out_projection=False)
+        heads = bare.apply({"params": {k: v for k, v in params["params"].items() if k != "out_proj"}}, x, x, x, mask)
+        out = params["params"]["out_proj"]
+        np.testing.assert_allclose(heads @ out["kernel"] + out["bias"], packed, rtol=1e-5, atol=1e-5)
+        np.testing.assert_array_equal(heads[2], 0.0)  # no visible key: zero attention vector

@@ -103,10 +103,17 @@ class MultiHeadAttention(nn.Module):
 
     q, k, v: (..., L, E); key_mask: (..., L) bool. Returns (..., L, E). A query whose keys are all masked gets a
     zero attention vector (PyTorch would give NaN), so its output is the output-projection bias.
+
+    Two departures from PyTorch, off by default, for networks that pay per row (HH Attn `small`):
+    `qk_head_dim` makes queries and keys narrower than the values (scores only need a rank-`qk_head_dim` bilinear
+    form per head, while the values carry the content), and `out_projection=False` returns the concatenated heads
+    unprojected, for a caller whose next layer is linear anyway (two linear maps in a row are one).
     """
 
     embed: int
     heads: int
+    qk_head_dim: int = 0  # 0: embed // heads, as PyTorch
+    out_projection: bool = True
 
     @nn.compact
     def __call__(self, q: jnp.ndarray, k: jnp.ndarray, v: jnp.ndarray, key_mask: jnp.ndarray) -> jnp.ndarray:
@@ -114,18 +121,27 @@ class MultiHeadAttention(nn.Module):
         if E % nh:
             raise ValueError(f"embed ({E}) must be divisible by heads ({nh})")
         hd = E // nh
-        # xavier-uniform over the packed (3E, E) matrix: fan_in E, fan_out 3E
-        bound = math.sqrt(6.0 / (E + 3 * E))
-        w_in = self.param("in_proj_kernel", _uniform(bound), (E, 3 * E))
-        b_in = self.param("in_proj_bias", nn.initializers.zeros, (3 * E,))
-        wq, wk, wv = jnp.split(w_in, 3, axis=-1)
-        bq, bk, bv = jnp.split(b_in, 3)
-        qp = (q @ wq + bq).reshape(q.shape[:-1] + (nh, hd))
-        kp = (k @ wk + bk).reshape(k.shape[:-1] + (nh, hd))
-        vp = (v @ wv + bv).reshape(v.shape[:-1] + (nh, hd))
-        scores = jnp.einsum("...qhd,...khd->...hqk", qp, kp) / math.sqrt(hd)
+        qkd = self.qk_head_dim or hd
+        width = 2 * nh * qkd + E
+        # xavier-uniform over the packed (width, E) matrix: fan_in E, fan_out width (3E when qk_head_dim is unset)
+        bound = math.sqrt(6.0 / (E + width))
+        w_in = self.param("in_proj_kernel", _uniform(bound), (E, width))
+        b_in = self.param("in_proj_bias", nn.initializers.zeros, (width,))
+        if q is k and k is v:  # self-attention on one input: one matmul for all three projections
+            qkv = q @ w_in + b_in
+            qp, kp, vp = jnp.split(qkv, [nh * qkd, 2 * nh * qkd], axis=-1)
+        else:
+            wq, wk, wv = jnp.split(w_in, [nh * qkd, 2 * nh * qkd], axis=-1)
+            bq, bk, bv = jnp.split(b_in, [nh * qkd, 2 * nh * qkd])
+            qp, kp, vp = q @ wq + bq, k @ wk + bk, v @ wv + bv
+        qp = qp.reshape(q.shape[:-1] + (nh, qkd))
+        kp = kp.reshape(k.shape[:-1] + (nh, qkd))
+        vp = vp.reshape(v.shape[:-1] + (nh, hd))
+        scores = jnp.einsum("...qhd,...khd->...hqk", qp, kp) / math.sqrt(qkd)
         weights = masked_softmax(scores, key_mask[..., None, None, :])
         out = jnp.einsum("...hqk,...khd->...qhd", weights, vp).reshape(q.shape[:-1] + (E,))
+        if not self.out_projection:
+            return out
         out_bound = 1.0 / math.sqrt(E)
         return nn.Dense(E, kernel_init=_uniform(out_bound), bias_init=nn.initializers.zeros, name="out_proj")(out)
 
