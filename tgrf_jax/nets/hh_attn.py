@@ -43,7 +43,7 @@ Presets (`HH_ATTN_SIZES`):
   and a 32-wide first embedding layer, and attends to the 16 nearest visible humans (`max_humans`): on average 8
   of the 20 are visible and more than 16 in under 3% of the steps (sensor range 5 m). One gradient slice of
   the PPO loss (16 envs x 15 steps) costs 429 MFLOP instead of 728 with the earlier 64-wide-everywhere `small`;
-  its training ran 44% faster at the same epochs (see the README). 69,925 params (D = 12, N = 20), 69,605 with
+  its training ran 39% faster at the same epochs (see the README). 69,925 params (D = 12, N = 20), 69,605 with
   D = 2.
 """
 
@@ -85,7 +85,7 @@ class HHAttnSize:
     # Attend to at most this many humans, the nearest visible ones (observation rows are sorted visible first by
     # distance); 0: all N rows.
     max_humans: int = 0
-    # Width of each self-attention head's queries and keys (0: A / heads, as the reference); the values keep A.
+    # Width of each self-attention head's queries and keys (0: A / heads, as the reference); values keep A / heads.
     hh_qk_head_dim: int = 0
     # The reference follows the attention's output projection with `spatial_linear`, again two linear maps in a
     # row; False drops the first.
