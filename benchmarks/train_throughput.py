@@ -26,6 +26,7 @@ import jax.numpy as jnp
 
 from benchmarks.common import machine_info, time_call, write_json
 from tgrf_jax.config import TrainConfig
+from tgrf_jax.nets.hh_attn import HH_ATTN_SIZES
 from tgrf_jax.train import make_train, shards
 from tgrf_jax.train.ppo import Transition, ppo_loss
 
@@ -55,15 +56,17 @@ def learner_flops_per_update(tr, state) -> float:
 
 def matmul_reference_gflops(rows: int = 3840, repeats: int = 20) -> float:
     """GFLOP/s of one (rows, 64) x (64, 128) float32 matmul + bias + ReLU, the shape of HH Attn small's widest
-    per-human layer (the attention's packed q/k/v projection: 2 x 2 heads x 16 + 64 columns), compiled alone:
-    what XLA:CPU reaches on this machine for the learner's kind of arithmetic when nothing else is in the way."""
-    cols = 128
-    x = jax.random.normal(jax.random.PRNGKey(0), (rows, 64))
-    w = jax.random.normal(jax.random.PRNGKey(1), (64, cols))
+    per-human layer (the attention's packed q/k/v projection: queries and keys of every head, then the values),
+    compiled alone: what XLA:CPU reaches on this machine for the learner's kind of arithmetic when nothing else is
+    in the way."""
+    s = HH_ATTN_SIZES["small"]
+    cols = 2 * s.hh_heads * (s.hh_qk_head_dim or s.hh_attn // s.hh_heads) + s.hh_attn
+    x = jax.random.normal(jax.random.PRNGKey(0), (rows, s.hh_attn))
+    w = jax.random.normal(jax.random.PRNGKey(1), (s.hh_attn, cols))
     b = jnp.zeros((cols,))
     fn = jax.jit(lambda x, w, b: jax.nn.relu(x @ w + b))
     _, run_s = time_call(fn, x, w, b, repeats=repeats)
-    return 2.0 * rows * 64 * cols / run_s / 1e9
+    return 2.0 * rows * s.hh_attn * cols / run_s / 1e9
 
 
 def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,

@@ -39,10 +39,15 @@ def _uniform(bound: float) -> Callable:
     return init
 
 
+def torch_linear_init(fan_in: int) -> Callable:
+    """PyTorch's default `nn.Linear` initialiser, for weight and bias alike: U(-1/sqrt(fan_in), +)."""
+    return _uniform(1.0 / math.sqrt(fan_in) if fan_in > 0 else 0.0)
+
+
 def torch_dense(features: int, fan_in: int, name: str | None = None) -> nn.Dense:
-    """Dense layer with PyTorch's default `nn.Linear` initialisation: weight and bias U(-1/sqrt(fan_in), +)."""
-    bound = 1.0 / math.sqrt(fan_in) if fan_in > 0 else 0.0
-    return nn.Dense(features, kernel_init=_uniform(bound), bias_init=_uniform(bound), name=name)
+    """Dense layer with PyTorch's default `nn.Linear` initialisation."""
+    init = torch_linear_init(fan_in)
+    return nn.Dense(features, kernel_init=init, bias_init=init, name=name)
 
 
 # ------------------------------------------------------------------------------------------------------------ GRU

@@ -63,6 +63,7 @@ from tgrf_jax.nets.common import (
     orthogonal_dense,
     robot_human_attention,
     torch_dense,
+    torch_linear_init,
 )
 
 
@@ -120,9 +121,9 @@ class KeyIntoQuery(nn.Module):
 
     @nn.compact
     def __call__(self, query: jnp.ndarray) -> jnp.ndarray:
-        dense = torch_dense(self.features, self.fan_in)
-        kernel = self.param("kernel", dense.kernel_init, (self.fan_in, self.features))
-        self.param("bias", dense.bias_init, (self.features,))
+        init = torch_linear_init(self.fan_in)
+        kernel = self.param("kernel", init, (self.fan_in, self.features))
+        self.param("bias", init, (self.features,))
         return query @ kernel.T
 
 
