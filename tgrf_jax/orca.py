@@ -21,9 +21,12 @@ How it is vectorised (RVO2's algorithm is sequential and branchy):
   run in dense rounds over the round's chunk (3.2 violated lines per LP2 on average, rarely more than 8).
 * Worklist rounds use a ladder of chunk sizes, so that the last rounds, which hold a few stragglers, do
   not pay for a full chunk of padding.
-* The four line components are built one per step of a 4-step loop (a ``lax.switch``): XLA:CPU splits a
-  multi-output elementwise computation into many materialised passes (measured ~15 fusions, 15-20x slower
-  than one component alone), while a single output fuses into one loop.
+* The four line components and the ranks are built one per step of a 5-step loop (a ``lax.switch``):
+  XLA:CPU splits a multi-output elementwise computation into many materialised passes (measured ~15
+  fusions, 15-20x slower than one component alone), while a single output fuses into one loop; and a
+  cheap chain that several consumers read (the ranks) is recomputed by each of them unless materialised.
+* linearProgram1's two bounds leave their per-line chain as one complex64 (:func:`_one_pass`), so the
+  chain runs once instead of once per bound and once more for the feasibility flag.
 * The worklists are data-dependent loops (``while_loop``s that end when nothing is pending, at most one
   round per line; a ``lax.switch`` over the chunk sizes; as many chunks as the pending problems fill).
   Under ``vmap`` they would become selects and every agent would pay for the worst one, so :func:`solve`
@@ -127,18 +130,22 @@ def _orca_lines(rpx, rpy, rvx, rvy, crad, vx, vy, inv_th, inv_dt, tie_sign):
     return vx + 0.5 * ux, vy + 0.5 * uy, dx, dy
 
 
-def _componentwise(fn, args, n_out, shape):
-    """fn(*args) -> n_out float32 arrays of ``shape``, evaluated one output per step of a loop (a switch).
+def _componentwise(fn, args, n_out, shape, extra=()):
+    """fn(*args) -> n_out float32 arrays of ``shape``, evaluated one output per step of a loop (a switch), plus
+    one more output per function of ``extra`` (each fn(*args) -> one float32 array of ``shape``).
 
     XLA:CPU splits a multi-output elementwise computation into many materialised passes (measured ~20x
     slower than one output), while a single output is one fused loop; recomputing the shared
-    intermediates once per output is far cheaper.
+    intermediates once per output is far cheaper.  The loop also materialises every output once: a cheap
+    elementwise chain with several consumers (the neighbour ranks) is otherwise fused into, and recomputed
+    by, each of them.
     """
-    branches = [lambda args, c=c: fn(*args)[c] for c in range(n_out)]
+    branches = [lambda args, c=c: fn(*args)[c] for c in range(n_out)] + [lambda args, f=f: f(*args) for f in extra]
     out = lax.fori_loop(
-        0, n_out, lambda c, buf: lax.dynamic_update_index_in_dim(buf, lax.switch(c, branches, args), c, 0),
-        jnp.zeros((n_out,) + tuple(shape), jnp.float32))
-    return tuple(out[c] for c in range(n_out))
+        0, len(branches),
+        lambda c, buf: lax.dynamic_update_index_in_dim(buf, lax.switch(c, branches, args), c, 0),
+        jnp.zeros((len(branches),) + tuple(shape), jnp.float32))
+    return tuple(out[c] for c in range(len(branches)))
 
 
 def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
@@ -146,31 +153,36 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
 
     Inputs are (B, N); inv_th, inv_dt, range_sq are (B,).  Outputs are (B, N, N) with [s, a, b] = agent a's
     line towards agent b: point/direction components, ``rank`` (b's position in a's distance-sorted
-    neighbour list, i.e. the line's index in RVO2's orcaLines_) and ``active`` (b is one of a's
-    ``k`` nearest neighbours within range).  The lines stay in agent-index order; the LPs follow ``rank``, so
+    neighbour list, i.e. the line's index in RVO2's orcaLines_; n where b is not one of a's ``k`` nearest
+    neighbours within range) and ``active`` (rank < n).  The lines stay in agent-index order; the LPs follow ``rank``, so
     nothing is sorted.  Equal distances rank by agent index (RVO2: kd-tree visiting order).
     """
     n = px.shape[-1]
     rpx = px[:, None, :] - px[:, :, None]  # other b minus self a
     rpy = py[:, None, :] - py[:, :, None]
-    d2 = rpx * rpx + rpy * rpy
     idx = jnp.arange(n)
     not_self = idx[:, None] != idx[None, :]
-    valid = not_self & mask[:, None, :] & (d2 < range_sq[:, None, None])
-
-    # rank by counting the valid neighbours that are closer (ties: lower index first)
-    key = jnp.where(valid, d2, _BIG)
-    rank = jnp.zeros(key.shape, jnp.int32)
-    for c in range(n):
-        kc = key[..., c:c + 1]
-        rank = rank + ((kc < key) | ((kc == key) & (c < idx))).astype(jnp.int32)
-    active = valid & (rank < k)
 
     tie_sign = jnp.where(idx[None, :] > idx[:, None], 1.0, -1.0)
+
+    def line_rank(rpx, rpy, *_):
+        """b's place in a's neighbour order (ties: lower index first), or n where b is not an active
+        neighbour: the count of the valid neighbours that are closer."""
+        d2 = rpx * rpx + rpy * rpy
+        valid = not_self & mask[:, None, :] & (d2 < range_sq[:, None, None])
+        key = jnp.where(valid, d2, _BIG)
+        rank = jnp.zeros(key.shape, jnp.int32)
+        for c in range(n):
+            kc = key[..., c:c + 1]
+            rank = rank + ((kc < key) | ((kc == key) & (c < idx))).astype(jnp.int32)
+        return jnp.where(valid & (rank < k), rank, n).astype(jnp.float32)
+
     args = (rpx, rpy, vx[:, :, None] - vx[:, None, :], vy[:, :, None] - vy[:, None, :],
             rad[:, :, None] + rad[:, None, :], vx[:, :, None], vy[:, :, None],
             inv_th[:, None, None], inv_dt[:, None, None], tie_sign)
-    return _componentwise(_orca_lines, args, 4, rpx.shape) + (rank, active)
+    *lines, rank = _componentwise(_orca_lines, args, 4, rpx.shape, extra=(line_rank,))
+    rank = rank.astype(jnp.int32)
+    return tuple(lines) + (rank, rank < n)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -196,6 +208,24 @@ def _first_line(hit, rank, n_slots):
     n = rank.shape[-1]
     key = jnp.min(jnp.where(hit, rank * n + jnp.arange(n, dtype=jnp.int32), n_slots * n), axis=-1)
     return key % n, key // n
+
+
+def _one_pass(a, b, cheap):
+    """(a, b), computed in one fused loop (``cheap``: any array that is already computed).
+
+    XLA:CPU gives every output of an elementwise computation its own loop and recomputes the shared chain in
+    each (the LP1 bounds: two full passes over the lines, plus a third for the feasibility flag).  A complex64
+    is one output holding both values; reading it back through an identity gather whose index XLA cannot
+    constant-fold keeps the simplifier from splitting real(complex(a, b)) into two chains again.  The index
+    is derived from ``cheap``: derived from a or b, it would give the chain a second consumer.
+    """
+    c = lax.complex(*jnp.broadcast_arrays(a, b))
+    flat = c.reshape(-1)
+    probe = cheap.reshape(-1)[0]
+    zero = (probe != probe).astype(jnp.int32)  # 0 (no NaN here), but only known at run time
+    flat = jnp.take(flat, jnp.arange(flat.shape[0], dtype=jnp.int32) + zero, mode="clip")
+    c = flat.reshape(c.shape)
+    return jnp.real(c), jnp.imag(c)
 
 
 def _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt):
@@ -225,14 +255,15 @@ def _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt):
         left = use & (den < 0.0) & (num * d_left < n_left * den)  # num/den > tLeft (den < 0)
         n_left = jnp.where(left, -num, n_left)
         d_left = jnp.where(left, -den, d_left)
-    t_left = n_left / d_left
-    t_right = n_right / d_right
-    ok = ~bad & (t_left <= t_right)
+    # bad: t_left = inf, so that ok is one comparison; both bounds leave the chain as one output
+    t_left, t_right = _one_pass(jnp.where(bad, jnp.inf, n_left / d_left), n_right / d_right, pix)
+    ok = t_left <= t_right
     if direction_opt:
         t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
     else:
         t = dix * (optx - pix) + diy * (opty - piy)
         t = jnp.where(t < t_left, t_left, jnp.where(t > t_right, t_right, t))
+    t = jnp.where(ok, t, 0.0)  # keeps the discarded candidates finite
     return pix + t * dix, piy + t * diy, ok
 
 
