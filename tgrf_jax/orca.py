@@ -50,6 +50,7 @@ __all__ = ["RVO_EPSILON", "solve", "solve_with_info"]
 RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshold in the LPs.
 _BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
 _CHUNK = 512  # problems per worklist chunk (see _worklist)
+_LP3_CHUNK = 128  # linearProgram3's chunks: each runs dense inner LP2 rounds until its slowest problem is done
 _LADDER_RATIO = 8  # a worklist round with few pending problems uses chunks this many times smaller ...
 _MIN_CHUNK = 32  # ... down to this size (each size is one more compiled copy of the round)
 
@@ -460,7 +461,7 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
 
     tables = lines + (rank, active, radius)
     rx, ry, *_ = _worklist(lp3_step, tables, (rx, ry, jnp.zeros_like(rx), fail_slot, fail_at), failed, n,
-                           _CHUNK)
+                           _LP3_CHUNK)
     return jnp.stack([rx, ry], -1).reshape(b, n, 2), failed.reshape(b, n)
 
 
