@@ -317,18 +317,18 @@ def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
     return rx, ry, slot, jnp.where(take, nxt, n_slots), fail_at
 
 
-def _lp2_events(lines, rank, valid, radius, optx, opty, direction_opt, chunk):
-    """Complete linearProgram2 for P problems: rounds run only on the problems with a violated line left (a
-    worklist), so the cost follows the total number of violated lines rather than P times the worst
-    problem's count.  Returns (rx, ry, fail_at)."""
+def _lp2_events(lines, rank, radius, optx, opty, direction_opt, chunk):
+    """Complete linearProgram2 for P problems (lines of rank n_slots are inactive): rounds run only on the
+    problems with a violated line left (a worklist), so the cost follows the total number of violated lines
+    rather than P times the worst problem's count.  Returns (rx, ry, fail_at)."""
     n_slots = lines[0].shape[-1]
-    state = _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt)
+    state = _lp2_init(lines, rank, rank < n_slots, radius, optx, opty, direction_opt)
 
-    def step(t, s):
-        new = _lp2_round(t[:4], t[4], t[5], t[6], t[7], t[8], direction_opt, s)
+    def step(t, s):  # the active mask is derived, not gathered: one table less per chunk
+        new = _lp2_round(t[:4], t[4], t[4] < n_slots, t[5], t[6], t[7], direction_opt, s)
         return new, new[3] < n_slots
 
-    tables = tuple(lines) + (rank, valid, radius, optx, opty)
+    tables = tuple(lines) + (rank, radius, optx, opty)
     rx, ry, _, _, fail_at = _worklist(step, tables, state, state[3] < n_slots, n_slots, chunk)
     return rx, ry, fail_at
 
@@ -448,7 +448,7 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     lines = tuple(x.reshape(a, n) for x in out[:4])
     rank, active = out[4].reshape(a, n), out[5].reshape(a, n)
 
-    rx, ry, fail_at = _lp2_events(lines, rank, active, radius, ox, oy, False, _CHUNK)
+    rx, ry, fail_at = _lp2_events(lines, rank, radius, ox, oy, False, _CHUNK)
 
     # linearProgram3 from the failing line (violated by the current result), only for the agents whose LP2
     # failed
@@ -456,10 +456,10 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     fail_slot, _ = _first_line(active & (rank == fail_at[:, None]), rank, n)
 
     def lp3_step(t, s):
-        new = _lp3_round(t[:4], t[4], t[5], t[6], s)
+        new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s)
         return new, new[4] < n
 
-    tables = lines + (rank, active, radius)
+    tables = lines + (rank, radius)
     rx, ry, *_ = _worklist(lp3_step, tables, (rx, ry, jnp.zeros_like(rx), fail_slot, fail_at), failed, n,
                            _LP3_CHUNK)
     return jnp.stack([rx, ry], -1).reshape(b, n, 2), failed.reshape(b, n)
