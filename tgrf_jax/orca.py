@@ -155,8 +155,8 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
     Inputs are (B, N); inv_th, inv_dt, range_sq are (B,).  Outputs are (B, N, N) with [s, a, b] = agent a's
     line towards agent b: point/direction components, ``rank`` (b's position in a's distance-sorted
     neighbour list, i.e. the line's index in RVO2's orcaLines_; n where b is not one of a's ``k`` nearest
-    neighbours within range) and ``active`` (rank < n).  The lines stay in agent-index order; the LPs follow ``rank``, so
-    nothing is sorted.  Equal distances rank by agent index (RVO2: kd-tree visiting order).
+    neighbours within range) and ``active`` (rank < n).  The lines stay in agent-index order; the LPs follow
+    ``rank``, so nothing is sorted.  Equal distances rank by agent index (RVO2: kd-tree visiting order).
     """
     n = px.shape[-1]
     rpx = px[:, None, :] - px[:, :, None]  # other b minus self a
