@@ -367,7 +367,7 @@ class PPOConfig:
     # --- static
     num_envs: int = spec(256, low=1, high=65536, doc="parallel environments")
     num_steps: int = spec(15, low=1, high=10000, doc="rollout length per update (= sequence length)")
-    total_steps: int = spec(4_492_800, low=1, doc="environment steps of the whole run")
+    total_steps: int = spec(5_990_400, low=1, doc="environment steps of the whole run")
     update_epochs: int = spec(2, low=1, high=1000, doc="epochs over each rollout (reference: 5)")
     num_minibatches: int = spec(8, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
     num_shards: int = spec(2, low=1, high=1024,
