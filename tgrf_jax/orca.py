@@ -220,7 +220,7 @@ def _one_pass(a, b, cheap):
     constant-fold keeps the simplifier from splitting real(complex(a, b)) into two chains again.  The index
     is derived from ``cheap``: derived from a or b, it would give the chain a second consumer.
     """
-    c = lax.complex(*jnp.broadcast_arrays(a, b))
+    c = lax.complex(a, b)  # a and b: the same shape
     flat = c.reshape(-1)
     probe = cheap.reshape(-1)[0]
     zero = (probe != probe).astype(jnp.int32)  # 0 (no NaN here), but only known at run time
