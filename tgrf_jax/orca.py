@@ -49,7 +49,7 @@ __all__ = ["RVO_EPSILON", "solve", "solve_with_info"]
 
 RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshold in the LPs.
 _BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
-_CHUNK = 512  # problems per worklist chunk (see _worklist)
+_LP2_BLOCK = 128  # linearProgram2's blocks: each runs dense rounds until its slowest problem is done
 _LP3_CHUNK = 128  # linearProgram3's chunks: each runs dense inner LP2 rounds until its slowest problem is done
 _LADDER_RATIO = 8  # a worklist round with few pending problems uses chunks this many times smaller ...
 _MIN_CHUNK = 32  # ... down to this size (each size is one more compiled copy of the round)
@@ -132,21 +132,42 @@ def _orca_lines(rpx, rpy, rvx, rvy, crad, vx, vy, inv_th, inv_dt, tie_sign):
 
 
 def _componentwise(fn, args, n_out, shape, extra=()):
-    """fn(*args) -> n_out float32 arrays of ``shape``, evaluated one output per step of a loop (a switch), plus
-    one more output per function of ``extra`` (each fn(*args) -> one float32 array of ``shape``).
+    """fn(*args) -> n_out float32 arrays of ``shape``, evaluated two outputs per step of a loop (a switch),
+    plus one more output per function of ``extra`` (each fn(*args) -> one float32 array of ``shape``).
 
     XLA:CPU splits a multi-output elementwise computation into many materialised passes (measured ~20x
-    slower than one output), while a single output is one fused loop; recomputing the shared
-    intermediates once per output is far cheaper.  The loop also materialises every output once: a cheap
-    elementwise chain with several consumers (the neighbour ranks) is otherwise fused into, and recomputed
-    by, each of them.
+    slower than one output), while a single output is one fused loop.  A complex64 output is one output that
+    holds two values, so each step computes the shared intermediates once for a pair of outputs; the loop
+    carry hides real(complex(a, b)) from the simplifier, which would otherwise split it into two chains
+    again.  The loop also materialises every output once: a cheap elementwise chain with several consumers
+    (the neighbour ranks) is otherwise fused into, and recomputed by, each of them.
     """
-    branches = [lambda args, c=c: fn(*args)[c] for c in range(n_out)] + [lambda args, f=f: f(*args) for f in extra]
+    outputs = [lambda args, c=c: fn(*args)[c] for c in range(n_out)] + [lambda args, f=f: f(*args) for f in extra]
+    if len(outputs) % 2:
+        outputs.append(lambda args: jnp.zeros(shape, jnp.float32))
+
+    def pair(c, args):
+        first, second = outputs[2 * c](args), outputs[2 * c + 1](args)
+        if first is second or c == len(outputs) // 2 - 1 and False:
+            pass
+        return lax.complex(first, second)
+
+    def pair_of(c):
+        def branch(args):
+            if c == len(outputs) // 2 - 1 and len(outputs) > n_out + len(extra):  # the padding slot: one value
+                return lax.complex(outputs[2 * c](args), jnp.zeros(shape, jnp.float32))
+            return lax.complex(outputs[2 * c](args), outputs[2 * c + 1](args))
+        return branch
+
+    branches = [pair_of(c) for c in range(len(outputs) // 2)]
     out = lax.fori_loop(
         0, len(branches),
         lambda c, buf: lax.dynamic_update_index_in_dim(buf, lax.switch(c, branches, args), c, 0),
-        jnp.zeros((len(branches),) + tuple(shape), jnp.float32))
-    return tuple(out[c] for c in range(len(branches)))
+        jnp.zeros((len(branches),) + tuple(shape), jnp.complex64))
+    values = []
+    for c in range(len(branches)):
+        values += [jnp.real(out[c]), jnp.imag(out[c])]
+    return tuple(values[:n_out + len(extra)])
 
 
 def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
@@ -158,30 +179,38 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
     neighbours within range) and ``active`` (rank < n).  The lines stay in agent-index order; the LPs follow
     ``rank``, so nothing is sorted.  Equal distances rank by agent index (RVO2: kd-tree visiting order).
     """
-    n = px.shape[-1]
-    rpx = px[:, None, :] - px[:, :, None]  # other b minus self a
-    rpy = py[:, None, :] - py[:, :, None]
+    n = px.shape[0]
     idx = jnp.arange(n)
-    not_self = idx[:, None] != idx[None, :]
+    not_self = (idx[:, None] != idx[None, :])[:, :, None]
+    other_idx = idx[:, None, None]
+    tie_sign = jnp.where(idx[:, None] > idx[None, :], 1.0, -1.0)[:, :, None]
 
-    tie_sign = jnp.where(idx[None, :] > idx[:, None], 1.0, -1.0)
+    # The pairwise differences are formed inside each output's computation: materialised, these (N, N, B)
+    # inputs cost more memory traffic than all the arithmetic of the lines.
+    def offsets(px, py):
+        return px[:, None, :] - px[None, :, :], py[:, None, :] - py[None, :, :]  # other b minus self a
 
-    def line_rank(rpx, rpy, *_):
+    def pair_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq):
+        rpx, rpy = offsets(px, py)
+        return _orca_lines(rpx, rpy, vx[None, :, :] - vx[:, None, :], vy[None, :, :] - vy[:, None, :],
+                           rad[None, :, :] + rad[:, None, :], vx[None, :, :], vy[None, :, :],
+                           inv_th[None, None, :], inv_dt[None, None, :], tie_sign)
+
+    def line_rank(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq):
         """b's place in a's neighbour order (ties: lower index first), or n where b is not an active
         neighbour: the count of the valid neighbours that are closer."""
+        rpx, rpy = offsets(px, py)
         d2 = rpx * rpx + rpy * rpy
-        valid = not_self & mask[:, None, :] & (d2 < range_sq[:, None, None])
+        valid = not_self & mask[:, None, :] & (d2 < range_sq[None, None, :])
         key = jnp.where(valid, d2, _BIG)
         rank = jnp.zeros(key.shape, jnp.int32)
         for c in range(n):
-            kc = key[..., c:c + 1]
-            rank = rank + ((kc < key) | ((kc == key) & (c < idx))).astype(jnp.int32)
+            kc = key[c:c + 1]
+            rank = rank + ((kc < key) | ((kc == key) & (c < other_idx))).astype(jnp.int32)
         return jnp.where(valid & (rank < k), rank, n).astype(jnp.float32)
 
-    args = (rpx, rpy, vx[:, :, None] - vx[:, None, :], vy[:, :, None] - vy[:, None, :],
-            rad[:, :, None] + rad[:, None, :], vx[:, :, None], vy[:, :, None],
-            inv_th[:, None, None], inv_dt[:, None, None], tie_sign)
-    *lines, rank = _componentwise(_orca_lines, args, 4, rpx.shape, extra=(line_rank,))
+    args = (px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq)
+    *lines, rank = _componentwise(pair_lines, args, 4, (n,) + px.shape, extra=(line_rank,))
     rank = rank.astype(jnp.int32)
     return tuple(lines) + (rank, rank < n)
 
@@ -197,7 +226,7 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
 
 def _pick(x, b):
     """x[p, b[p]] (a gather: also a fusion boundary, so the scan that produced b is not recomputed)."""
-    return jnp.take_along_axis(x, b[:, None], axis=-1, mode="clip")[:, 0]
+    return jnp.take_along_axis(x, b[None, :], axis=0, mode="clip")[0]
 
 
 def _first_line(hit, rank, n_slots):
@@ -206,27 +235,40 @@ def _first_line(hit, rank, n_slots):
     One min-reduction over a packed (rank, slot) key: XLA:CPU materialises a reduction's result instead of
     re-evaluating the whole scan inside every consumer, as it does with a select chain.
     """
-    n = rank.shape[-1]
-    key = jnp.min(jnp.where(hit, rank * n + jnp.arange(n, dtype=jnp.int32), n_slots * n), axis=-1)
+    n = rank.shape[0]
+
+    def min_key(hit, rank):
+        key = jnp.where(hit[0], rank[0] * n, n_slots * n)
+        for j in range(1, n):
+            key = jnp.minimum(key, jnp.where(hit[j], rank[j] * n + j, n_slots * n))
+        return key
+
+    key = _computed_once(min_key, hit, rank)
     return key % n, key // n
 
 
-def _one_pass(a, b, cheap):
-    """(a, b), computed in one fused loop (``cheap``: any array that is already computed).
+def _computed_once(fn, *args):
+    """fn(*args) (one array, or a pair of float32 arrays of one shape), computed in one vectorised loop and
+    materialised.
 
-    XLA:CPU gives every output of an elementwise computation its own loop and recomputes the shared chain in
-    each (the LP1 bounds: two full passes over the lines, plus a third for the feasibility flag).  A complex64
-    is one output holding both values; reading it back through an identity gather whose index XLA cannot
-    constant-fold keeps the simplifier from splitting real(complex(a, b)) into two chains again.  The index
-    is derived from ``cheap``: derived from a or b, it would give the chain a second consumer.
+    XLA:CPU fuses a cheap elementwise chain into each of its consumers (recomputing it), and gives every output
+    of a computation its own loop (recomputing the shared chain in each).  Here the chain is the branch of a
+    conditional whose predicate is only known at run time (always true), so it is one fusion whose result is
+    materialised; a pair leaves it as one complex64, which the simplifier cannot split into two chains again
+    through the conditional.  (A gather with a run-time index would also be a boundary, but XLA fuses the
+    chain into the gather, whose loop is not vectorised.)
     """
-    c = lax.complex(a, b)  # a and b: the same shape
-    flat = c.reshape(-1)
-    probe = cheap.reshape(-1)[0]
-    zero = (probe != probe).astype(jnp.int32)  # 0 (no NaN here), but only known at run time
-    flat = jnp.take(flat, jnp.arange(flat.shape[0], dtype=jnp.int32) + zero, mode="clip")
-    c = flat.reshape(c.shape)
-    return jnp.real(c), jnp.imag(c)
+    pair = isinstance(jax.eval_shape(fn, *args), tuple)
+
+    def run(args):
+        out = fn(*args)
+        return lax.complex(*out) if pair else out
+
+    out_type = jax.eval_shape(run, args)
+    probe = args[0].reshape(-1)[0]
+    always = probe == probe  # True (no NaN here), but not a constant
+    out = lax.cond(always, run, lambda _: jnp.zeros(out_type.shape, out_type.dtype), args)
+    return (jnp.real(out), jnp.imag(out)) if pair else out
 
 
 def _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt):
@@ -237,27 +279,30 @@ def _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt):
     RVO2's min/max of rounded quotients picks the same line up to rounding ties.
     Returns the candidate result and ``ok`` (False where RVO2's linearProgram1 returns false).
     """
-    px, py, dx, dy = lines
-    dot = pix * dix + piy * diy
-    disc = dot * dot + radius * radius - (pix * pix + piy * piy)
-    sq = _safe_sqrt(disc)
-    n_left, n_right = -dot - sq, -dot + sq
-    d_left = d_right = jnp.ones_like(dot)
-    bad = disc < 0.0
-    for j in range(px.shape[-1]):
-        den = _det(dix, diy, dx[:, j], dy[:, j])
-        num = _det(dx[:, j], dy[:, j], pix - px[:, j], piy - py[:, j])
-        parallel = jnp.abs(den) <= RVO_EPSILON
-        use = prev[:, j] & ~parallel
-        bad = bad | (prev[:, j] & parallel & (num < 0.0))
-        right = use & (den >= 0.0) & (num * d_right < n_right * den)  # num/den < tRight
-        n_right = jnp.where(right, num, n_right)
-        d_right = jnp.where(right, den, d_right)
-        left = use & (den < 0.0) & (num * d_left < n_left * den)  # num/den > tLeft (den < 0)
-        n_left = jnp.where(left, -num, n_left)
-        d_left = jnp.where(left, -den, d_left)
-    # bad: t_left = inf, so that ok is one comparison; both bounds leave the chain as one output
-    t_left, t_right = _one_pass(jnp.where(bad, jnp.inf, n_left / d_left), n_right / d_right, pix)
+
+    def bounds(pix, piy, dix, diy, px, py, dx, dy, prev, radius):
+        dot = pix * dix + piy * diy
+        disc = dot * dot + radius * radius - (pix * pix + piy * piy)
+        sq = _safe_sqrt(disc)
+        n_left, n_right = -dot - sq, -dot + sq
+        d_left = d_right = jnp.ones_like(dot)
+        bad = disc < 0.0
+        for j in range(px.shape[0]):
+            den = _det(dix, diy, dx[j], dy[j])
+            num = _det(dx[j], dy[j], pix - px[j], piy - py[j])
+            parallel = jnp.abs(den) <= RVO_EPSILON
+            use = prev[j] & ~parallel
+            bad = bad | (prev[j] & parallel & (num < 0.0))
+            right = use & (den >= 0.0) & (num * d_right < n_right * den)  # num/den < tRight
+            n_right = jnp.where(right, num, n_right)
+            d_right = jnp.where(right, den, d_right)
+            left = use & (den < 0.0) & (num * d_left < n_left * den)  # num/den > tLeft (den < 0)
+            n_left = jnp.where(left, -num, n_left)
+            d_left = jnp.where(left, -den, d_left)
+        # bad: t_left = inf, so that ok is one comparison
+        return jnp.where(bad, jnp.inf, n_left / d_left), n_right / d_right
+
+    t_left, t_right = _computed_once(bounds, pix, piy, dix, diy, *lines, prev, radius)
     ok = t_left <= t_right
     if direction_opt:
         t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
@@ -283,15 +328,15 @@ def _next_violated(lines, rank, valid, after, rx, ry, depth):
     """Slot and rank of the lowest-ranked valid line with rank > after whose penetration det(d, p - r)
     exceeds depth (rank == n_slots if none): where RVO2's loop does work next."""
     px, py, dx, dy = lines
-    depth = jnp.broadcast_to(depth, rx.shape)[:, None]
-    hit = valid & (rank > after[:, None]) & (_det(dx, dy, px - rx[:, None], py - ry[:, None]) > depth)
-    return _first_line(hit, rank, px.shape[-1])
+    depth = jnp.broadcast_to(depth, rx.shape)[None, :]
+    hit = valid & (rank > after[None, :]) & (_det(dx, dy, px - rx[None, :], py - ry[None, :]) > depth)
+    return _first_line(hit, rank, px.shape[0])
 
 
 def _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt):
     """linearProgram2's initial state (rx, ry, next_slot, next_rank, fail_at) for :func:`_lp2_round`."""
     rx, ry = _lp2_start(radius, optx, opty, direction_opt)
-    n_slots = lines[0].shape[-1]
+    n_slots = lines[0].shape[0]
     slot, nxt = _next_violated(lines, rank, valid, jnp.full(rx.shape, -1, jnp.int32), rx, ry, 0.0)
     return rx, ry, slot, nxt, jnp.full(rx.shape, n_slots, jnp.int32)
 
@@ -304,10 +349,10 @@ def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
     of the line where LP1 failed (n_slots: none).  On failure the result stays and the walk stops, as in RVO2.
     """
     rx, ry, b, i_rank, fail_at = state
-    n_slots = lines[0].shape[-1]
+    n_slots = lines[0].shape[0]
     found = i_rank < n_slots
     pix, piy, dix, diy = (_pick(x, b) for x in lines)
-    prev = valid & (rank < i_rank[:, None])
+    prev = valid & (rank < i_rank[None, :])
     cx, cy, ok = _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt)
     take = found & ok
     rx = jnp.where(take, cx, rx)
@@ -317,20 +362,21 @@ def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
     return rx, ry, slot, jnp.where(take, nxt, n_slots), fail_at
 
 
-def _lp2_events(lines, rank, radius, optx, opty, direction_opt, chunk):
-    """Complete linearProgram2 for P problems (lines of rank n_slots are inactive): rounds run only on the
-    problems with a violated line left (a worklist), so the cost follows the total number of violated lines
-    rather than P times the worst problem's count.  Returns (rx, ry, fail_at)."""
-    n_slots = lines[0].shape[-1]
-    state = _lp2_init(lines, rank, rank < n_slots, radius, optx, opty, direction_opt)
+def _blocked(solve, tables, n_out, block):
+    """solve(*block_tables) -> n_out (block,) arrays, run over consecutive blocks of the problems (the minor
+    axis of every table) in a loop and stitched together.  The last block is shifted back to end at P (its
+    overlap with the previous block is solved twice, identically), so nothing is padded."""
+    n_prob = tables[0].shape[-1]
+    block = min(block, n_prob)
+    n_blocks = -(-n_prob // block)
 
-    def step(t, s):  # the active mask is derived, not gathered: one table less per chunk
-        new = _lp2_round(t[:4], t[4], t[4] < n_slots, t[5], t[6], t[7], direction_opt, s)
-        return new, new[3] < n_slots
+    def body(i, outs):
+        start = jnp.minimum(i * block, n_prob - block)
+        part = solve(*(lax.dynamic_slice_in_dim(t, start, block, axis=t.ndim - 1) for t in tables))
+        return tuple(lax.dynamic_update_slice_in_dim(o, v, start, 0) for o, v in zip(outs, part))
 
-    tables = tuple(lines) + (rank, radius, optx, opty)
-    rx, ry, _, _, fail_at = _worklist(step, tables, state, state[3] < n_slots, n_slots, chunk)
-    return rx, ry, fail_at
+    outs = tuple(jnp.zeros((n_prob,), dt) for dt in n_out)
+    return lax.fori_loop(0, n_blocks, body, outs)
 
 
 def _lp2_dense(lines, rank, valid, radius, optx, opty, direction_opt):
@@ -338,7 +384,7 @@ def _lp2_dense(lines, rank, valid, radius, optx, opty, direction_opt):
 
     Used inside linearProgram3, on one worklist chunk: there a nested worklist's gathers, scatters and
     compactions cost more than the rounds they save (3 violated lines per LP2 on average, rarely over 8)."""
-    n_slots = lines[0].shape[-1]
+    n_slots = lines[0].shape[0]
     state = _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt)
     state = lax.while_loop(lambda s: jnp.any(s[3] < n_slots),
                            lambda s: _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, s), state)
@@ -364,20 +410,29 @@ def _lp3_round(lines, rank, valid, radius, state):
     then look ahead to the next such line.  state = (rx, ry, distance, next_slot, next_rank)."""
     px, py, dx, dy = lines
     rx, ry, distance, b, i_rank = state
-    n_slots = px.shape[-1]
-    pix, piy, dix, diy = (p[:, None] for p in (_pick(x, b) for x in lines))
+    n_slots = px.shape[0]
+    pix, piy, dix, diy = (p[None, :] for p in (_pick(x, b) for x in lines))
 
     projected = _componentwise(_projected_lines, (pix, piy, dix, diy) + tuple(lines), 4, px.shape)
     parallel = jnp.abs(_det(dix, diy, dx, dy)) <= RVO_EPSILON
-    qvalid = valid & (rank < i_rank[:, None]) & ~(parallel & (dix * dx + diy * dy > 0.0))
-    nx, ny = -diy[:, 0], dix[:, 0]  # optimise towards line i's valid side
+    qvalid = valid & (rank < i_rank[None, :]) & ~(parallel & (dix * dx + diy * dy > 0.0))
+    nx, ny = -diy[0], dix[0]  # optimise towards line i's valid side
     sx, sy, lp2_fail = _lp2_dense(projected, rank, qvalid, radius, nx, ny, True)
     take = lp2_fail == n_slots  # a failed inner LP2 (rounding) keeps the result, as in RVO2
     rx = jnp.where(take, sx, rx)
     ry = jnp.where(take, sy, ry)
-    distance = _det(dix[:, 0], diy[:, 0], pix[:, 0] - rx, piy[:, 0] - ry)
+    distance = _det(dix[0], diy[0], pix[0] - rx, piy[0] - ry)
     slot, nxt = _next_violated(lines, rank, valid, i_rank, rx, ry, distance)
     return rx, ry, distance, slot, nxt
+
+
+def _columns(table, cols):
+    """table[..., cols] for a (P,) or (L, P) table, gathered element by element so that the result keeps the
+    problems as its minor (vectorised) axis: a gather of whole columns is laid out (cols, L) and transposed."""
+    if table.ndim == 1:
+        return table[cols]
+    idx = jnp.broadcast_to(cols[None, :], (table.shape[0], cols.shape[0]))
+    return jnp.take_along_axis(table, idx, axis=1, mode="clip")
 
 
 def _worklist(step, tables, state, pending, n_rounds, chunk):
@@ -402,7 +457,7 @@ def _worklist(step, tables, state, pending, n_rounds, chunk):
             state, pending = carry
             sel = lax.dynamic_slice(order, (c * size,), (size,))
             rows = jnp.minimum(sel, n_prob - 1)
-            new, pend = step(tuple(t[rows] for t in tables), tuple(x[rows] for x in state))
+            new, pend = step(tuple(_columns(t, rows) for t in tables), tuple(x[rows] for x in state))
             state = tuple(x.at[sel].set(v, mode="drop") for x, v in zip(state, new))  # padding is dropped
             return state, pending.at[sel].set(pend, mode="drop")
 
@@ -434,26 +489,31 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     f32 = jnp.float32
     pos, vel, pref = pos.astype(f32), vel.astype(f32), pref.astype(f32)
     a = b * n
-    radius = vmax.astype(f32).reshape(a)
-    ox, oy = pref[..., 0].reshape(a), pref[..., 1].reshape(a)
+    agent_major = lambda x: x.T.reshape(a)  # noqa: E731  (B, N) -> problem p = agent * B + scene
+    scene_major = lambda x: x.reshape(n, b).T  # noqa: E731
+    radius = agent_major(vmax.astype(f32))
+    ox, oy = agent_major(pref[..., 0]), agent_major(pref[..., 1])
     if k == 0:
         rx, ry = _lp2_start(radius, ox, oy, direction_opt=False)
-        return jnp.stack([rx, ry], -1).reshape(b, n, 2), jnp.zeros((b, n), bool)
+        return jnp.stack([scene_major(rx), scene_major(ry)], -1), jnp.zeros((b, n), bool)
 
     inv_th = 1.0 / time_horizon.astype(f32)  # RVO2: invTimeHorizon = 1.0f / timeHorizon_
     inv_dt = 1.0 / dt.astype(f32)
     nd = neighbor_dist.astype(f32)
-    out = _neighbour_lines(pos[..., 0], pos[..., 1], vel[..., 0], vel[..., 1], rad.astype(f32),
-                           mask.astype(bool), inv_th, inv_dt, nd * nd, k)
-    lines = tuple(x.reshape(a, n) for x in out[:4])
-    rank, active = out[4].reshape(a, n), out[5].reshape(a, n)
+    out = _neighbour_lines(pos[..., 0].T, pos[..., 1].T, vel[..., 0].T, vel[..., 1].T, rad.astype(f32).T,
+                           mask.astype(bool).T, inv_th, inv_dt, nd * nd, k)
+    lines = tuple(x.reshape(n, a) for x in out[:4])
+    rank, active = out[4].reshape(n, a), out[5].reshape(n, a)
 
-    rx, ry, fail_at = _lp2_events(lines, rank, radius, ox, oy, False, _CHUNK)
+    rx, ry, fail_at = _blocked(
+        lambda px, py, dx, dy, rank, radius, ox, oy: _lp2_dense((px, py, dx, dy), rank, rank < n, radius, ox, oy,
+                                                                 False),
+        lines + (rank, radius, ox, oy), (jnp.float32, jnp.float32, jnp.int32), _LP2_BLOCK)
 
     # linearProgram3 from the failing line (violated by the current result), only for the agents whose LP2
     # failed
     failed = fail_at < n
-    fail_slot, _ = _first_line(active & (rank == fail_at[:, None]), rank, n)
+    fail_slot, _ = _first_line(active & (rank == fail_at[None, :]), rank, n)
 
     def lp3_step(t, s):
         new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s)
@@ -462,7 +522,7 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     tables = lines + (rank, radius)
     rx, ry, *_ = _worklist(lp3_step, tables, (rx, ry, jnp.zeros_like(rx), fail_slot, fail_at), failed, n,
                            _LP3_CHUNK)
-    return jnp.stack([rx, ry], -1).reshape(b, n, 2), failed.reshape(b, n)
+    return jnp.stack([scene_major(rx), scene_major(ry)], -1), scene_major(failed)
 
 
 @functools.lru_cache(maxsize=None)
