@@ -132,42 +132,23 @@ def _orca_lines(rpx, rpy, rvx, rvy, crad, vx, vy, inv_th, inv_dt, tie_sign):
 
 
 def _componentwise(fn, args, n_out, shape, extra=()):
-    """fn(*args) -> n_out float32 arrays of ``shape``, evaluated two outputs per step of a loop (a switch),
-    plus one more output per function of ``extra`` (each fn(*args) -> one float32 array of ``shape``).
+    """fn(*args) -> n_out float32 arrays of ``shape``, computed two outputs at a time, plus one more output per
+    function of ``extra`` (each fn(*args) -> one float32 array of ``shape``).
 
     XLA:CPU splits a multi-output elementwise computation into many materialised passes (measured ~20x
-    slower than one output), while a single output is one fused loop.  A complex64 output is one output that
-    holds two values, so each step computes the shared intermediates once for a pair of outputs; the loop
-    carry hides real(complex(a, b)) from the simplifier, which would otherwise split it into two chains
-    again.  The loop also materialises every output once: a cheap elementwise chain with several consumers
-    (the neighbour ranks) is otherwise fused into, and recomputed by, each of them.
+    slower than one output), while a single output is one fused loop; so each pair of outputs is its own
+    :func:`_computed_once` (one loop, the shared intermediates computed once for both).  This also
+    materialises every output once: a cheap elementwise chain with several consumers (the neighbour ranks)
+    is otherwise fused into, and recomputed by, each of them.
     """
-    outputs = [lambda args, c=c: fn(*args)[c] for c in range(n_out)] + [lambda args, f=f: f(*args) for f in extra]
-    if len(outputs) % 2:
-        outputs.append(lambda args: jnp.zeros(shape, jnp.float32))
-
-    def pair(c, args):
-        first, second = outputs[2 * c](args), outputs[2 * c + 1](args)
-        if first is second or c == len(outputs) // 2 - 1 and False:
-            pass
-        return lax.complex(first, second)
-
-    def pair_of(c):
-        def branch(args):
-            if c == len(outputs) // 2 - 1 and len(outputs) > n_out + len(extra):  # the padding slot: one value
-                return lax.complex(outputs[2 * c](args), jnp.zeros(shape, jnp.float32))
-            return lax.complex(outputs[2 * c](args), outputs[2 * c + 1](args))
-        return branch
-
-    branches = [pair_of(c) for c in range(len(outputs) // 2)]
-    out = lax.fori_loop(
-        0, len(branches),
-        lambda c, buf: lax.dynamic_update_index_in_dim(buf, lax.switch(c, branches, args), c, 0),
-        jnp.zeros((len(branches),) + tuple(shape), jnp.complex64))
+    outputs = [lambda *a, c=c: fn(*a)[c] for c in range(n_out)] + list(extra)
     values = []
-    for c in range(len(branches)):
-        values += [jnp.real(out[c]), jnp.imag(out[c])]
-    return tuple(values[:n_out + len(extra)])
+    for c in range(0, len(outputs), 2):
+        if c + 1 < len(outputs):
+            values += _computed_once(lambda *a, c=c: (outputs[c](*a), outputs[c + 1](*a)), *args)
+        else:
+            values.append(_computed_once(outputs[c], *args))
+    return tuple(values)
 
 
 def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
