@@ -210,21 +210,21 @@ def _pick(x, b):
     return jnp.take_along_axis(x, b[None, :], axis=0, mode="clip")[0]
 
 
-def _first_line(hit, rank, n_slots):
-    """Slot and rank of the lowest-ranked line where hit (P, L) holds; rank == n_slots if none.
-
-    One min-reduction over a packed (rank, slot) key: XLA:CPU materialises a reduction's result instead of
-    re-evaluating the whole scan inside every consumer, as it does with a select chain.
-    """
+def _min_key(hit, rank, n_slots):
+    """Packed (rank, slot) key of the lowest-ranked line where hit (L, P) holds (n_slots * L if none): an
+    elementwise min over the L rows, so that the problems stay on the vectorised axis."""
     n = rank.shape[0]
+    key = jnp.where(hit[0], rank[0] * n, n_slots * n)
+    for j in range(1, n):
+        key = jnp.minimum(key, jnp.where(hit[j], rank[j] * n + j, n_slots * n))
+    return key
 
-    def min_key(hit, rank):
-        key = jnp.where(hit[0], rank[0] * n, n_slots * n)
-        for j in range(1, n):
-            key = jnp.minimum(key, jnp.where(hit[j], rank[j] * n + j, n_slots * n))
-        return key
 
-    key = _computed_once(min_key, hit, rank)
+def _first_line(hit_fn, args, rank, n_slots):
+    """Slot and rank of the lowest-ranked line where hit_fn(*args) (L, P) holds; rank == n_slots if none.
+    The hit mask and the min over lines are one loop whose result is materialised (:func:`_computed_once`)."""
+    n = rank.shape[0]
+    key = _computed_once(lambda rank, *args: _min_key(hit_fn(*args), rank, n_slots), rank, *args)
     return key % n, key // n
 
 
@@ -246,14 +246,17 @@ def _computed_once(fn, *args):
         return lax.complex(*out) if pair else out
 
     out_type = jax.eval_shape(run, args)
-    probe = args[0].reshape(-1)[0]
+    probe = next((x for x in args if jnp.issubdtype(x.dtype, jnp.floating)), None)
+    if probe is None:  # x == x folds to True for integers, not for floats (NaN)
+        probe = lax.bitcast_convert_type(args[0].astype(jnp.int32), jnp.float32)
+    probe = probe.reshape(-1)[0]
     always = probe == probe  # True (no NaN here), but not a constant
     out = lax.cond(always, run, lambda _: jnp.zeros(out_type.shape, out_type.dtype), args)
     return (jnp.real(out), jnp.imag(out)) if pair else out
 
 
-def _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt):
-    """linearProgram1 on line i (arrays (P,)) constrained by the lines where prev (P, L) holds.
+def _lp1(pix, piy, dix, diy, lines, valid, rank, before, radius, optx, opty, direction_opt):
+    """linearProgram1 on line i (arrays (P,)) constrained by the valid lines (L, P) ranked before ``before``.
 
     The running bounds are kept as fractions num/den with den > 0, compared by cross-multiplication, so the
     per-line chain has no division (XLA:CPU would materialise every division instead of fusing the chain);
@@ -261,7 +264,8 @@ def _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt):
     Returns the candidate result and ``ok`` (False where RVO2's linearProgram1 returns false).
     """
 
-    def bounds(pix, piy, dix, diy, px, py, dx, dy, prev, radius):
+    def bounds(pix, piy, dix, diy, px, py, dx, dy, valid, rank, before, radius):
+        prev = valid & (rank < before[None, :])
         dot = pix * dix + piy * diy
         disc = dot * dot + radius * radius - (pix * pix + piy * piy)
         sq = _safe_sqrt(disc)
@@ -283,7 +287,7 @@ def _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt):
         # bad: t_left = inf, so that ok is one comparison
         return jnp.where(bad, jnp.inf, n_left / d_left), n_right / d_right
 
-    t_left, t_right = _computed_once(bounds, pix, piy, dix, diy, *lines, prev, radius)
+    t_left, t_right = _computed_once(bounds, pix, piy, dix, diy, *lines, valid, rank, before, radius)
     ok = t_left <= t_right
     if direction_opt:
         t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
@@ -308,10 +312,12 @@ def _lp2_start(radius, optx, opty, direction_opt):
 def _next_violated(lines, rank, valid, after, rx, ry, depth):
     """Slot and rank of the lowest-ranked valid line with rank > after whose penetration det(d, p - r)
     exceeds depth (rank == n_slots if none): where RVO2's loop does work next."""
-    px, py, dx, dy = lines
-    depth = jnp.broadcast_to(depth, rx.shape)[None, :]
-    hit = valid & (rank > after[None, :]) & (_det(dx, dy, px - rx[None, :], py - ry[None, :]) > depth)
-    return _first_line(hit, rank, px.shape[0])
+    def hit(px, py, dx, dy, rank, valid, after, rx, ry, depth):
+        penetration = _det(dx, dy, px - rx[None, :], py - ry[None, :])
+        return valid & (rank > after[None, :]) & (penetration > depth[None, :])
+
+    depth = jnp.broadcast_to(jnp.asarray(depth, rx.dtype), rx.shape)
+    return _first_line(hit, tuple(lines) + (rank, valid, after, rx, ry, depth), rank, rank.shape[0])
 
 
 def _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt):
@@ -333,8 +339,7 @@ def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
     n_slots = lines[0].shape[0]
     found = i_rank < n_slots
     pix, piy, dix, diy = (_pick(x, b) for x in lines)
-    prev = valid & (rank < i_rank[None, :])
-    cx, cy, ok = _lp1(pix, piy, dix, diy, lines, prev, radius, optx, opty, direction_opt)
+    cx, cy, ok = _lp1(pix, piy, dix, diy, lines, valid, rank, i_rank, radius, optx, opty, direction_opt)
     take = found & ok
     rx = jnp.where(take, cx, rx)
     ry = jnp.where(take, cy, ry)
@@ -463,6 +468,35 @@ def _worklist(step, tables, state, pending, n_rounds, chunk):
 # the batched kernel
 
 
+def _linear_program2(lines, rank, radius, optx, opty):
+    """linearProgram2 for every problem (lines (L, P), rank (L, P), the rest (P,)): dense rounds over blocks of
+    consecutive problems.  Returns (rx, ry, fail_at)."""
+    n_slots = rank.shape[0]
+
+    def solve_block(px, py, dx, dy, rank, radius, optx, opty):
+        return _lp2_dense((px, py, dx, dy), rank, rank < n_slots, radius, optx, opty, False)
+
+    return _blocked(solve_block, tuple(lines) + (rank, radius, optx, opty), (jnp.float32, jnp.float32, jnp.int32),
+                    _LP2_BLOCK)
+
+
+def _linear_program3(lines, rank, radius, rx, ry, fail_at):
+    """linearProgram3 from the failing line (violated by the current result), only for the problems whose
+    linearProgram2 failed (fail_at < L), as a worklist.  Returns the new (rx, ry)."""
+    n = rank.shape[0]
+    fail_slot, _ = _first_line(lambda rank, fail_at: (rank < n) & (rank == fail_at[None, :]), (rank, fail_at),
+                               rank, n)
+
+    def lp3_step(t, s):
+        new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s)
+        return new, new[4] < n
+
+    tables = tuple(lines) + (rank, radius)
+    rx, ry, *_ = _worklist(lp3_step, tables, (rx, ry, jnp.zeros_like(rx), fail_slot, fail_at), fail_at < n, n,
+                           _LP3_CHUNK)
+    return rx, ry
+
+
 def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_dist, *, k):
     """Batched core: pos/vel/pref (B, N, 2), rad/vmax/mask (B, N), scalars (B,).  Returns (B, N, 2) and the
     per-agent LP2 failure flag (B, N)."""
@@ -484,25 +518,11 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     out = _neighbour_lines(pos[..., 0].T, pos[..., 1].T, vel[..., 0].T, vel[..., 1].T, rad.astype(f32).T,
                            mask.astype(bool).T, inv_th, inv_dt, nd * nd, k)
     lines = tuple(x.reshape(n, a) for x in out[:4])
-    rank, active = out[4].reshape(n, a), out[5].reshape(n, a)
+    rank = out[4].reshape(n, a)
 
-    rx, ry, fail_at = _blocked(
-        lambda px, py, dx, dy, rank, radius, ox, oy: _lp2_dense((px, py, dx, dy), rank, rank < n, radius, ox, oy,
-                                                                 False),
-        lines + (rank, radius, ox, oy), (jnp.float32, jnp.float32, jnp.int32), _LP2_BLOCK)
-
-    # linearProgram3 from the failing line (violated by the current result), only for the agents whose LP2
-    # failed
+    rx, ry, fail_at = _linear_program2(lines, rank, radius, ox, oy)
+    rx, ry = _linear_program3(lines, rank, radius, rx, ry, fail_at)
     failed = fail_at < n
-    fail_slot, _ = _first_line(active & (rank == fail_at[None, :]), rank, n)
-
-    def lp3_step(t, s):
-        new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s)
-        return new, new[4] < n
-
-    tables = lines + (rank, radius)
-    rx, ry, *_ = _worklist(lp3_step, tables, (rx, ry, jnp.zeros_like(rx), fail_slot, fail_at), failed, n,
-                           _LP3_CHUNK)
     return jnp.stack([scene_major(rx), scene_major(ry)], -1), scene_major(failed)
 
 
