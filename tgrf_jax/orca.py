@@ -210,13 +210,38 @@ def _pick(x, b):
     return jnp.take_along_axis(x, b[None, :], axis=0, mode="clip")[0]
 
 
-def _min_key(hit, rank, n_slots):
-    """Packed (rank, slot) key of the lowest-ranked line where hit (L, P) holds (n_slots * L if none): an
-    elementwise min over the L rows, so that the problems stay on the vectorised axis."""
+def _slot_bits(n):
+    """Bits of a packed key that hold the slot (a power-of-two packing: shifts and masks fuse freely into
+    XLA:CPU loops, while integer division and remainder are materialised like any division)."""
+    return max(1, (n - 1).bit_length())
+
+
+def _pack(rank, slot, n):
+    return (rank << _slot_bits(n)) | slot
+
+
+def _key_slot(key, n):
+    return key & ((1 << _slot_bits(n)) - 1)
+
+
+def _key_rank(key, n):
+    return key >> _slot_bits(n)  # arithmetic shift: rank -1 stays -1
+
+
+def _none_key(n):
+    """The key of 'no line' (rank n): larger than every real key."""
+    return _pack(n, 0, n)
+
+
+def _min_key(hit_row, rank, n_slots):
+    """Packed (rank, slot) key (:func:`_pack`) of the lowest-ranked line j where hit_row(j) (P,) holds (rank
+    n_slots if none): an elementwise min over the L rows, so that the problems stay on the vectorised axis.
+    (Row by row: a whole (L, P) mask, sliced per row, would be materialised instead of fused.)"""
     n = rank.shape[0]
-    key = jnp.where(hit[0], rank[0] * n, n_slots * n)
+    none = _pack(n_slots, 0, n)
+    key = jnp.where(hit_row(0), _pack(rank[0], 0, n), none)
     for j in range(1, n):
-        key = jnp.minimum(key, jnp.where(hit[j], rank[j] * n + j, n_slots * n))
+        key = jnp.minimum(key, jnp.where(hit_row(j), _pack(rank[j], j, n), none))
     return key
 
 
@@ -224,8 +249,8 @@ def _first_line(hit_fn, args, rank, n_slots):
     """Slot and rank of the lowest-ranked line where hit_fn(*args) (L, P) holds; rank == n_slots if none.
     The hit mask and the min over lines are one loop whose result is materialised (:func:`_computed_once`)."""
     n = rank.shape[0]
-    key = _computed_once(lambda rank, *args: _min_key(hit_fn(*args), rank, n_slots), rank, *args)
-    return key % n, key // n
+    key = _computed_once(lambda rank, *args: _min_key(lambda j: hit_fn(*args)[j], rank, n_slots), rank, *args)
+    return _key_slot(key, n), _key_rank(key, n)
 
 
 def _computed_once(fn, *args):
@@ -239,6 +264,7 @@ def _computed_once(fn, *args):
     through the conditional.  (A gather with a run-time index would also be a boundary, but XLA fuses the
     chain into the gather, whose loop is not vectorised.)
     """
+    args = tuple(jnp.asarray(x) for x in args)
     pair = isinstance(jax.eval_shape(fn, *args), tuple)
 
     def run(args):
@@ -255,47 +281,49 @@ def _computed_once(fn, *args):
     return (jnp.real(out), jnp.imag(out)) if pair else out
 
 
-def _lp1(pix, piy, dix, diy, lines, valid, rank, before, radius, optx, opty, direction_opt):
-    """linearProgram1 on line i (arrays (P,)) constrained by the valid lines (L, P) ranked before ``before``.
+def _pick_row(x, b):
+    """x[b[p], p] for an (L, P) table, as a select chain over its rows: inside a loop fusion over the problems
+    this is a few vector selects, where a gather would be a separate, scalar loop."""
+    out = x[0]
+    for j in range(1, x.shape[0]):
+        out = jnp.where(b == j, x[j], out)
+    return out
+
+
+def _lp1_bounds(radius, key, px, py, dx, dy, valid, rank):
+    """linearProgram1's feasible interval (t_left, t_right) on the line that ``key`` (packed (rank, slot), see
+    :func:`_min_key`) points to, constrained by the valid lines ranked before it; t_left = inf where RVO2's
+    linearProgram1 returns false, so that ``t_left <= t_right`` is its success.  Meant for one loop over the
+    problems (:func:`_computed_once`): the divisions come last, because XLA:CPU does not fuse a division into
+    more than one consumer and would split the chain into one loop per use.
 
     The running bounds are kept as fractions num/den with den > 0, compared by cross-multiplication, so the
-    per-line chain has no division (XLA:CPU would materialise every division instead of fusing the chain);
-    RVO2's min/max of rounded quotients picks the same line up to rounding ties.
-    Returns the candidate result and ``ok`` (False where RVO2's linearProgram1 returns false).
+    per-line chain has no division; RVO2's min/max of rounded quotients picks the same line up to rounding
+    ties.
     """
-
-    def bounds(pix, piy, dix, diy, px, py, dx, dy, valid, rank, before, radius):
-        prev = valid & (rank < before[None, :])
-        dot = pix * dix + piy * diy
-        disc = dot * dot + radius * radius - (pix * pix + piy * piy)
-        sq = _safe_sqrt(disc)
-        n_left, n_right = -dot - sq, -dot + sq
-        d_left = d_right = jnp.ones_like(dot)
-        bad = disc < 0.0
-        for j in range(px.shape[0]):
-            den = _det(dix, diy, dx[j], dy[j])
-            num = _det(dx[j], dy[j], pix - px[j], piy - py[j])
-            parallel = jnp.abs(den) <= RVO_EPSILON
-            use = prev[j] & ~parallel
-            bad = bad | (prev[j] & parallel & (num < 0.0))
-            right = use & (den >= 0.0) & (num * d_right < n_right * den)  # num/den < tRight
-            n_right = jnp.where(right, num, n_right)
-            d_right = jnp.where(right, den, d_right)
-            left = use & (den < 0.0) & (num * d_left < n_left * den)  # num/den > tLeft (den < 0)
-            n_left = jnp.where(left, -num, n_left)
-            d_left = jnp.where(left, -den, d_left)
-        # bad: t_left = inf, so that ok is one comparison
-        return jnp.where(bad, jnp.inf, n_left / d_left), n_right / d_right
-
-    t_left, t_right = _computed_once(bounds, pix, piy, dix, diy, *lines, valid, rank, before, radius)
-    ok = t_left <= t_right
-    if direction_opt:
-        t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
-    else:
-        t = dix * (optx - pix) + diy * (opty - piy)
-        t = jnp.where(t < t_left, t_left, jnp.where(t > t_right, t_right, t))
-    t = jnp.where(ok, t, 0.0)  # keeps the discarded candidates finite
-    return pix + t * dix, piy + t * diy, ok
+    n = rank.shape[0]
+    b, before = _key_slot(key, n), _key_rank(key, n)
+    pix, piy, dix, diy = (_pick_row(x, b) for x in (px, py, dx, dy))
+    dot = pix * dix + piy * diy
+    disc = dot * dot + radius * radius - (pix * pix + piy * piy)
+    sq = _safe_sqrt(disc)
+    n_left, n_right = -dot - sq, -dot + sq
+    d_left = d_right = jnp.ones_like(dot)
+    bad = disc < 0.0
+    for j in range(n):
+        prev = valid[j] & (rank[j] < before)
+        den = _det(dix, diy, dx[j], dy[j])
+        num = _det(dx[j], dy[j], pix - px[j], piy - py[j])
+        parallel = jnp.abs(den) <= RVO_EPSILON
+        use = prev & ~parallel
+        bad = bad | (prev & parallel & (num < 0.0))
+        right = use & (den >= 0.0) & (num * d_right < n_right * den)  # num/den < tRight
+        n_right = jnp.where(right, num, n_right)
+        d_right = jnp.where(right, den, d_right)
+        left = use & (den < 0.0) & (num * d_left < n_left * den)  # num/den > tLeft (den < 0)
+        n_left = jnp.where(left, -num, n_left)
+        d_left = jnp.where(left, -den, d_left)
+    return jnp.where(bad, jnp.inf, n_left / d_left), n_right / d_right
 
 
 def _lp2_start(radius, optx, opty, direction_opt):
@@ -320,32 +348,52 @@ def _next_violated(lines, rank, valid, after, rx, ry, depth):
     return _first_line(hit, tuple(lines) + (rank, valid, after, rx, ry, depth), rank, rank.shape[0])
 
 
+def _next_key(radius, take, key, r, px, py, dx, dy, valid, rank, depth):
+    """Packed key of the lowest-ranked valid line ranked after ``key`` whose penetration det(d, p - r) exceeds
+    depth, where ``take`` holds (none elsewhere): where RVO2's loop does work next.  One loop."""
+    n = rank.shape[0]
+    rx, ry, after = jnp.real(r), jnp.imag(r), _key_rank(key, n)
+
+    def hit_row(j):
+        return valid[j] & (rank[j] > after) & (_det(dx[j], dy[j], px[j] - rx, py[j] - ry) > depth)
+
+    return jnp.where(take, _min_key(hit_row, rank, n), _none_key(n))
+
+
 def _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt):
-    """linearProgram2's initial state (rx, ry, next_slot, next_rank, fail_at) for :func:`_lp2_round`."""
+    """linearProgram2's initial state (r, key, fail_at) for :func:`_lp2_round`."""
+    n = rank.shape[0]
     rx, ry = _lp2_start(radius, optx, opty, direction_opt)
-    n_slots = lines[0].shape[0]
-    slot, nxt = _next_violated(lines, rank, valid, jnp.full(rx.shape, -1, jnp.int32), rx, ry, 0.0)
-    return rx, ry, slot, nxt, jnp.full(rx.shape, n_slots, jnp.int32)
+    before_all = jnp.full(rx.shape, _pack(-1, 0, n), jnp.int32)  # rank -1: every line is after it
+    r = lax.complex(rx, ry)
+    key = _computed_once(_next_key, radius, jnp.ones(rx.shape, bool), before_all, r, *lines, valid, rank, 0.0)
+    return r, key, jnp.full(rx.shape, n, jnp.int32)
 
 
 def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state):
     """One step of linearProgram2 for every problem: solve LP1 on the pending violated line, then look ahead
     to the next violated line, so that a problem is pending exactly while RVO2 still has work to do.
 
-    state = (rx, ry, next_slot, next_rank, fail_at): next_rank == n_slots means finished, fail_at is the rank
-    of the line where LP1 failed (n_slots: none).  On failure the result stays and the walk stops, as in RVO2.
+    state = (r, key, fail_at): the result as complex(x, y); the packed key of the pending line (rank n: none,
+    finished); the rank of the line where LP1 failed (n: none).  On failure the result stays and the walk
+    stops, as in RVO2.  Each step is a handful of loops: LP1 and the look-ahead each run as one.
     """
-    rx, ry, b, i_rank, fail_at = state
-    n_slots = lines[0].shape[0]
-    found = i_rank < n_slots
-    pix, piy, dix, diy = (_pick(x, b) for x in lines)
-    cx, cy, ok = _lp1(pix, piy, dix, diy, lines, valid, rank, i_rank, radius, optx, opty, direction_opt)
+    r, key, fail_at = state
+    n = rank.shape[0]
+    found = key < _none_key(n)
+    t_left, t_right = _computed_once(_lp1_bounds, radius, key, *lines, valid, rank)
+    ok = t_left <= t_right
+    pix, piy, dix, diy = (_pick_row(x, _key_slot(key, n)) for x in lines)
+    if direction_opt:
+        t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
+    else:
+        t = dix * (optx - pix) + diy * (opty - piy)
+        t = jnp.where(t < t_left, t_left, jnp.where(t > t_right, t_right, t))
     take = found & ok
-    rx = jnp.where(take, cx, rx)
-    ry = jnp.where(take, cy, ry)
-    fail_at = jnp.where(found & ~ok, i_rank, fail_at)
-    slot, nxt = _next_violated(lines, rank, valid, i_rank, rx, ry, 0.0)
-    return rx, ry, slot, jnp.where(take, nxt, n_slots), fail_at
+    r = jnp.where(take, lax.complex(pix + t * dix, piy + t * diy), r)
+    fail_at = jnp.where(found & ~ok, _key_rank(key, n), fail_at)
+    key = _computed_once(_next_key, radius, take, key, r, *lines, valid, rank, 0.0)
+    return r, key, fail_at
 
 
 def _blocked(solve, tables, n_out, block):
@@ -370,11 +418,12 @@ def _lp2_dense(lines, rank, valid, radius, optx, opty, direction_opt):
 
     Used inside linearProgram3, on one worklist chunk: there a nested worklist's gathers, scatters and
     compactions cost more than the rounds they save (3 violated lines per LP2 on average, rarely over 8)."""
-    n_slots = lines[0].shape[0]
+    n = rank.shape[0]
     state = _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt)
-    state = lax.while_loop(lambda s: jnp.any(s[3] < n_slots),
-                           lambda s: _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, s), state)
-    return state[0], state[1], state[4]
+    r, _, fail_at = lax.while_loop(
+        lambda s: jnp.min(s[1]) < _none_key(n),
+        lambda s: _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, s), state)
+    return jnp.real(r), jnp.imag(r), fail_at
 
 
 def _projected_lines(pix, piy, dix, diy, px, py, dx, dy):
