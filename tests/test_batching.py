@@ -1,4 +1,4 @@
-"""cond_any (a conditional that stays one under vmap) and the counting sort used by the observation."""
+"""cond_gathered (a conditional that stays one under vmap) and the counting sort used by the observation."""
 
 import jax
 import jax.numpy as jnp
@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tgrf_jax.batching import cond_any
+from tgrf_jax.batching import cond_gathered
 from tgrf_jax.env import scenario
 from tgrf_jax.env.sensing import sort_order
 
@@ -19,11 +19,11 @@ def _keep(x, y):
     return {"x": x, "n": jnp.int32(0)}
 
 
-def test_cond_any_equals_lax_cond_unbatched_and_batched():
+def test_cond_gathered_equals_lax_cond_unbatched_and_batched():
     x = jnp.arange(6.0)
     y = jnp.float32(0.5)
     for pred in (True, False):
-        got = cond_any(jnp.asarray(pred), _bump, _keep, x, y)
+        got = cond_gathered(jnp.asarray(pred), _bump, _keep, x, y)
         want = jax.lax.cond(pred, _bump, _keep, x, y)
         for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
             np.testing.assert_array_equal(a, b)
@@ -32,32 +32,36 @@ def test_cond_any_equals_lax_cond_unbatched_and_batched():
     ys = jnp.asarray([0.0, 1.0, 2.0, 3.0])
     for preds in ([True, False, True, False], [False] * 4, [True] * 4):
         preds = jnp.asarray(preds)
-        got = jax.jit(jax.vmap(lambda p, a, b: cond_any(p, _bump, _keep, a, b)))(preds, xs, ys)
+        got = jax.jit(jax.vmap(lambda p, a, b: cond_gathered(p, _bump, _keep, a, b)))(preds, xs, ys)
         want = jax.vmap(lambda p, a, b: jax.lax.cond(p, _bump, _keep, a, b))(preds, xs, ys)
         np.testing.assert_array_equal(got["x"], want["x"])
         np.testing.assert_array_equal(got["n"], want["n"])
     # an unbatched operand and a nested vmap (the outer level falls back to a select)
-    got = jax.vmap(jax.vmap(lambda p, a: cond_any(p, _bump, _keep, a, y)))(
+    got = jax.vmap(jax.vmap(lambda p, a: cond_gathered(p, _bump, _keep, a, y)))(
         jnp.asarray([[True, False], [False, False]]), jnp.ones((2, 2, 3)))
     np.testing.assert_array_equal(got["n"], [[1, 0], [0, 0]])
     np.testing.assert_array_equal(got["x"][0, 0], np.full(3, 2.5))
     np.testing.assert_array_equal(got["x"][1, 1], np.ones(3))
 
 
-def test_cond_any_skips_the_true_branch_when_no_element_needs_it():
-    calls = []
+def test_cond_gathered_runs_the_true_branch_only_for_the_elements_that_need_it():
+    rows_seen = []
 
     def true_fn(x):
-        jax.debug.callback(lambda: calls.append(1))
+        jax.debug.callback(lambda x: rows_seen.append(np.asarray(x).copy()), x)
         return x + 1.0
 
-    f = jax.jit(jax.vmap(lambda p, x: cond_any(p, true_fn, lambda x: x, x)))
-    jax.block_until_ready(f(jnp.zeros(8, bool), jnp.zeros(8)))
-    assert calls == []
-    out = f(jnp.arange(8) == 3, jnp.zeros(8))
+    f = jax.jit(jax.vmap(lambda p, x: cond_gathered(p, true_fn, lambda x: x, x, chunk=2)))
+    xs = jnp.arange(8.0)
+    jax.block_until_ready(f(jnp.zeros(8, bool), xs))
+    assert rows_seen == []  # nothing due: the true branch never runs
+    pred = jnp.isin(jnp.arange(8), jnp.asarray([1, 4, 6]))
+    out = f(pred, xs)
     jax.block_until_ready(out)
-    assert len(calls) >= 1
-    np.testing.assert_array_equal(out, (np.arange(8) == 3).astype(np.float32))
+    np.testing.assert_array_equal(out, np.where(pred, xs + 1.0, xs))
+    # (the callback runs once per element) three elements in chunks of two: two chunks, the second padded
+    # with the last row, whose result is dropped; the other elements never reach the true branch
+    assert sorted(float(r) for r in rows_seen) == [1.0, 4.0, 6.0, 7.0]
 
 
 def test_goal_changes_only_when_due():

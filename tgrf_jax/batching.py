@@ -1,8 +1,9 @@
-"""A conditional that stays a conditional under ``jax.vmap``.
+"""A conditional that stays a conditional under ``jax.vmap``, and runs its true branch only where needed.
 
 ``lax.cond`` with a batched predicate becomes a select: every element pays for both branches. Environments
-are stepped as vmapped batches, and some per-step work is rarely needed by any element (human goal changes
-fall due once every 20 steps), so a batch should skip it when no element needs it.
+are stepped as vmapped batches, and some per-step work is needed by few elements (a human goal change falls due
+once every 20 steps of an episode, so about one environment in 20 of a batch needs it on any step once the
+episodes are out of step), so a batch should run it only for those elements.
 """
 
 from __future__ import annotations
@@ -11,17 +12,19 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["cond_any"]
+__all__ = ["cond_gathered"]
 
 
-def cond_any(pred, true_fn, false_fn, *operands):
-    """``lax.cond(pred, true_fn, false_fn, *operands)`` that, under ``vmap``, runs ``true_fn`` on the batch
-    (and selects its result per element by ``pred``) only when some element's ``pred`` holds, and only
-    ``false_fn`` otherwise.
+def cond_gathered(pred, true_fn, false_fn, *operands, chunk: int = 32):
+    """``lax.cond(pred, true_fn, false_fn, *operands)`` that, under ``vmap``, runs ``false_fn`` on the whole
+    batch and ``true_fn`` only on the elements whose ``pred`` holds, gathered into chunks of ``chunk``
+    elements (as many chunks as they fill: none when no element needs it), whose results replace those
+    elements' results.
 
-    Both functions must be pure and take every traced value they use as an operand (a ``custom_vmap``
-    function may not close over tracers). Results equal ``lax.cond``'s bit for bit. Not differentiable.
-    Under nested ``vmap`` the outer levels fall back to a select, which is still correct.
+    Both functions must be pure, return the same structure, and take every traced value they use as an
+    operand (a ``custom_vmap`` function may not close over tracers). Per element the results equal
+    ``lax.cond``'s. Not differentiable. Under nested ``vmap`` the outer levels run the chunk loop as often as
+    their largest count needs, selecting per element, which is still correct.
     """
 
     @jax.custom_batching.custom_vmap
@@ -34,16 +37,22 @@ def cond_any(pred, true_fn, false_fn, *operands):
         if not pred_batched:
             pred = jnp.broadcast_to(pred, (axis_size,))
         axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, b) for b in ops_batched)
+        size = max(1, min(int(chunk), axis_size))
+        n_chunks = -(-axis_size // size)
+        order = jnp.nonzero(pred, size=n_chunks * size, fill_value=axis_size)[0].astype(jnp.int32)
+        count = jnp.sum(pred, dtype=jnp.int32)
 
-        def per_element(fn, ops):
-            return jax.vmap(fn, in_axes=axes, axis_size=axis_size)(*ops)
+        def gather(rows):
+            return tuple(jax.tree_util.tree_map(lambda x, a: x if a is None else x[rows], op, ax)
+                         for op, ax in zip(ops, axes))
 
-        def both(pred, ops):
-            chosen, other = per_element(true_fn, ops), per_element(false_fn, ops)
-            return jax.tree_util.tree_map(
-                lambda a, b: jnp.where(pred.reshape(pred.shape + (1,) * (a.ndim - 1)), a, b), chosen, other)
+        def run_chunk(c, out):
+            sel = lax.dynamic_slice_in_dim(order, c * size, size)
+            part = jax.vmap(true_fn, in_axes=axes, axis_size=size)(*gather(jnp.minimum(sel, axis_size - 1)))
+            return jax.tree_util.tree_map(lambda o, v: o.at[sel].set(v, mode="drop"), out, part)  # padding: dropped
 
-        out = lax.cond(jnp.any(pred), both, lambda pred, ops: per_element(false_fn, ops), pred, ops)
+        out = jax.vmap(false_fn, in_axes=axes, axis_size=axis_size)(*ops)
+        out = lax.fori_loop(0, (count + size - 1) // size, run_chunk, out)
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     return branch(pred, *operands)

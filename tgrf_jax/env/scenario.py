@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from tgrf_jax.batching import cond_any
+from tgrf_jax.batching import cond_gathered
 from tgrf_jax.env.types import EnvParams, Humans, Robot
 from tgrf_jax.geometry import norm
 
@@ -153,11 +153,14 @@ def change_goals(key, humans: Humans, robot: Robot, params: EnvParams, step_coun
     """Every goal_change_interval seconds each human switches, with goal_change_prob, to a new circle goal.
 
     The candidates are drawn only on the steps where changes fall due (one in 20 by default), also in a
-    vmapped batch of environments, where no element being due skips the work (see `cond_any`).
+    vmapped batch of environments, where only the environments that are due do the work (see `cond_gathered`).
     """
     due = (step_count % params.goal_change_period) == 0
-    return cond_any(due, lambda *args: _switch_goals(*args, tries), lambda key, humans, robot, params: humans,
-                    key, humans, robot, params)
+    return cond_gathered(due, lambda *args: _switch_goals(*args, tries), _unchanged, key, humans, robot, params)
+
+
+def _unchanged(key, humans: Humans, robot: Robot, params: EnvParams) -> Humans:
+    return humans
 
 
 def _switch_goals(key, humans: Humans, robot: Robot, params: EnvParams, tries: int) -> Humans:
@@ -175,12 +178,23 @@ def respawn_arrived(key, humans: Humans, robot: Robot, params: EnvParams, tries:
 
     One arrival is served per step (the lowest index); another human arriving in the same step waits at its
     goal until the next one. Serving one instead of all N cuts the rejection-sampling work N-fold, and
-    simultaneous arrivals are rare.
+    simultaneous arrivals are rare. In a vmapped batch only the environments with an arrival do the work
+    (see `cond_gathered`).
     """
+    return cond_gathered(jnp.any(_arrived(humans)), lambda *args: _respawn_first(*args, tries), _unchanged,
+                         key, humans, robot, params)
+
+
+def _arrived(humans: Humans):
+    offset = humans.pos - humans.goal
+    return jnp.square(offset[:, 0]) + jnp.square(offset[:, 1]) < jnp.square(humans.radius)
+
+
+def _respawn_first(key, humans: Humans, robot: Robot, params: EnvParams, tries: int) -> Humans:
+    """Replace the lowest-indexed arrived human (if any) by a fresh one on the circle."""
     n = humans.pos.shape[0]
     k_attr, k_cand = jax.random.split(key)
-    offset = humans.pos - humans.goal
-    arrived = jnp.square(offset[:, 0]) + jnp.square(offset[:, 1]) < jnp.square(humans.radius)
+    arrived = _arrived(humans)
     who = jnp.argmax(arrived)
     radius, v_pref = sample_attributes(k_attr, params)
     candidates = circle_candidates(k_cand, params, (tries,))
