@@ -24,6 +24,9 @@ from tgrf_jax.env.types import (
 )
 
 
+_RESET_CHUNK = 16  # fresh episodes computed together by step_batch (a step finishes a few per 512 envs)
+
+
 def _as_env_config(config) -> EnvConfig:
     if config is None:
         return EnvConfig()
@@ -145,17 +148,16 @@ class CrowdNavEnv:
         (a few percent of steps); here `num_resets` fresh episodes are sampled once and the k-th environment
         that finished in this call takes fresh episode k mod num_resets. With num_resets >= B every finished
         episode is replaced by its own fresh one; with fewer, two environments finishing in the same step
-        beyond num_resets share a start state (they diverge from the next step on). Same returns as
-        `jax.vmap(step)`; `params` is shared by the batch.
+        beyond num_resets share a start state (they diverge from the next step on). Only the fresh episodes
+        that are taken are computed. Same returns as `jax.vmap(step)`; `params` is shared by the batch.
         """
         num_envs = action.shape[0]
         num_resets = max(1, min(int(num_resets), num_envs))
         k_step, k_reset = jax.random.split(key)
         obs, next_state, reward, terminated, truncated, info = jax.vmap(self.step_env, in_axes=(0, 0, 0, None))(
             jax.random.split(k_step, num_envs), state, action, params)
-        reset_obs, reset_state = jax.vmap(self.reset_env, in_axes=(0, None))(
-            jax.random.split(k_reset, num_resets), params)
         done = terminated | truncated
+        reset_obs, reset_state = self._fresh_episodes(k_reset, params, num_resets, jnp.sum(done, dtype=jnp.int32))
         slot = (jnp.cumsum(done.astype(jnp.int32)) - 1) % num_resets
 
         def pick(fresh, cont):
@@ -165,6 +167,25 @@ class CrowdNavEnv:
         next_state = jax.tree_util.tree_map(pick, reset_state, next_state)
         obs = jax.tree_util.tree_map(pick, reset_obs, obs)
         return obs, next_state, reward, terminated, truncated, info
+
+    def _fresh_episodes(self, key, params: EnvParams, num_resets: int, num_done):
+        """(obs, state) of fresh episodes 0..num_resets-1 (episode k from the k-th key of split(key,
+        num_resets)), of which only the first min(num_done, num_resets) are computed, in chunks: only those
+        are used, and a step finishes far fewer episodes than there are slots (the others stay zero)."""
+        keys = jax.random.split(key, num_resets)
+        chunk = min(_RESET_CHUNK, num_resets)
+        reset_batch = jax.vmap(self.reset_env, in_axes=(0, None))
+        fresh = jax.tree_util.tree_map(lambda s: jnp.zeros((num_resets,) + s.shape[1:], s.dtype),
+                                       jax.eval_shape(reset_batch, keys[:chunk], params))
+
+        def run_chunk(c, fresh):
+            start = jnp.minimum(c * chunk, num_resets - chunk)  # the last chunk overlaps: recomputed, identical
+            part = reset_batch(jax.lax.dynamic_slice_in_dim(keys, start, chunk), params)
+            return jax.tree_util.tree_map(lambda f, p: jax.lax.dynamic_update_slice_in_dim(f, p, start, 0),
+                                          fresh, part)
+
+        needed = jnp.minimum(num_done, num_resets)
+        return jax.lax.fori_loop(0, (needed + chunk - 1) // chunk, run_chunk, fresh)
 
     # ------------------------------------------------------------------ dynamics
     def reset_env(self, key, params: EnvParams) -> tuple[Obs, EnvState]:
