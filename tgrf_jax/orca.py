@@ -8,30 +8,34 @@ largest penetration, exactly as RVO2 does (same epsilon, same incremental order,
 
 How it is vectorised (RVO2's algorithm is sequential and branchy):
 
-* Every agent gets one ORCA line towards every other agent (agent-index order) plus the line's ``rank`` in
-  RVO2's distance-sorted neighbour list; lines outside the ``max_neighbors`` nearest / ``neighbor_dist`` are
-  inactive.  The LPs follow ``rank``, so the lines are never sorted (sorts and top_k are slow on XLA:CPU).
+* One problem per agent of every scene (p = agent * B + scene), on the minor axis of every array: the lines
+  are (L, P) tables with one slot per other agent (agent-index order), so every loop over the problems is
+  full-width vector code (with the 20 line slots minor, LLVM vectorised 4-wide).  Each line carries its
+  ``rank`` in RVO2's distance-sorted neighbour list; lines outside the ``max_neighbors`` nearest /
+  ``neighbor_dist`` are inactive (rank = L).  The LPs follow ``rank``, so nothing is sorted (sorts and
+  top_k are slow on XLA:CPU).
 * ``linearProgram2`` is driven by events: RVO2 only does O(lines) work at lines that the running result
-  violates (about 2.4 per agent in crossing crowds), so each "round" solves ``linearProgram1`` on a
-  problem's pending violated line (a masked scan over the earlier-ranked lines) and then looks ahead to
-  the next violated line.  A problem is pending exactly while it has such a line, and rounds run only on
-  the pending problems, gathered into fixed-size chunks (a worklist).
-* ``linearProgram3`` runs the same way, only for the agents whose LP2 failed, one round per line it
-  re-solves (about 1.9 per failing agent); each such round is a direction-mode LP2 over the projected lines,
-  run in dense rounds over the round's chunk (3.2 violated lines per LP2 on average, rarely more than 8).
-* Worklist rounds use a ladder of chunk sizes, so that the last rounds, which hold a few stragglers, do
-  not pay for a full chunk of padding.
-* The four line components and the ranks are built one per step of a 5-step loop (a ``lax.switch``):
-  XLA:CPU splits a multi-output elementwise computation into many materialised passes (measured ~15
-  fusions, 15-20x slower than one component alone), while a single output fuses into one loop; and a
-  cheap chain that several consumers read (the ranks) is recomputed by each of them unless materialised.
-* linearProgram1's two bounds leave their per-line chain as one complex64 (:func:`_one_pass`), so the
-  chain runs once instead of once per bound and once more for the feasibility flag.
-* The worklists are data-dependent loops (``while_loop``s that end when nothing is pending, at most one
-  round per line; a ``lax.switch`` over the chunk sizes; as many chunks as the pending problems fill).
-  Under ``vmap`` they would become selects and every agent would pay for the worst one, so :func:`solve`
-  carries a ``jax.custom_batching.custom_vmap`` rule: ``jax.vmap`` (nested too) hands the whole batch to
-  one kernel, where the loops stay loops and the chunks draw from all scenes.
+  violates (about 2.4 per agent in crossing crowds), so each round solves ``linearProgram1`` on a problem's
+  pending violated line (a masked scan over the earlier-ranked lines) and then looks ahead to the next
+  violated line; a problem is pending exactly while it has one.  The rounds run dense (every problem) over
+  blocks of 128 consecutive problems until the block's slowest problem is done: compacting the pending
+  problems costs more in gathers than the dense rounds waste.
+* ``linearProgram3`` runs only for the agents whose LP2 failed, one round per line it re-solves (about 1.9 per
+  failing agent), as a worklist: each round compacts the pending problems into chunks of 128; each round is a
+  direction-mode LP2 over the projected lines, run in dense rounds over its chunk.
+* XLA:CPU's fusion rules decide the speed, more than the arithmetic: a computation with several outputs gets
+  one loop per output (recomputing what they share); a cheap chain is fused into every consumer (recomputed by
+  each); a float or integer division is not fused into more than one consumer (the chain is cut there); a
+  gather fusion is a scalar loop.  So every expensive chain ends in one output, computed once in one
+  vectorised loop behind a conditional that is always true at run time (:func:`_computed_once`): the line
+  components and ranks two at a time as complex64 pairs, linearProgram1's two bounds as one complex64 (the
+  divisions last), the look-ahead's lowest violated line as one packed (rank, slot) key (packed by shifts,
+  not division); masks are formed row by row inside those loops, and the LP1 line is picked by a select chain
+  over the rows instead of a gather.
+* The worklists and dense rounds are data-dependent loops (``while_loop``s that end when nothing is
+  pending).  Under ``vmap`` they would become selects and every agent would pay for the worst one, so
+  :func:`solve` carries a ``jax.custom_batching.custom_vmap`` rule: ``jax.vmap`` (nested too) hands the
+  whole batch to one kernel, where the loops stay loops and the blocks draw from all scenes.
 
 Every division and square root is guarded, so no NaN/inf appears even for coincident agents (where RVO2
 itself divides 0 by 0), zero velocities or agents without neighbours.
@@ -51,8 +55,6 @@ RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshol
 _BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
 _LP2_BLOCK = 128  # linearProgram2's blocks: each runs dense rounds until its slowest problem is done
 _LP3_CHUNK = 128  # linearProgram3's chunks: each runs dense inner LP2 rounds until its slowest problem is done
-_LADDER_RATIO = 8  # a worklist round with few pending problems uses chunks this many times smaller ...
-_MIN_CHUNK = 32  # ... down to this size (each size is one more compiled copy of the round)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -206,7 +208,7 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
 
 
 def _pick(x, b):
-    """x[p, b[p]] (a gather: also a fusion boundary, so the scan that produced b is not recomputed)."""
+    """x[b[p], p] for an (L, P) table, as a gather (a fusion boundary: what produced b is not recomputed)."""
     return jnp.take_along_axis(x, b[None, :], axis=0, mode="clip")[0]
 
 
@@ -416,8 +418,9 @@ def _blocked(solve, tables, n_out, block):
 def _lp2_dense(lines, rank, valid, radius, optx, opty, direction_opt):
     """linearProgram2 for P problems in dense rounds (every problem every round) until none is pending.
 
-    Used inside linearProgram3, on one worklist chunk: there a nested worklist's gathers, scatters and
-    compactions cost more than the rounds they save (3 violated lines per LP2 on average, rarely over 8)."""
+    Used on blocks of problems (linearProgram2 itself, and the projected lines of a linearProgram3 chunk):
+    there compacting the pending problems costs more in gathers and scatters than the rounds it saves (2.4
+    violated lines per LP2 on average, 3.2 inside LP3, rarely over 8)."""
     n = rank.shape[0]
     state = _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt)
     r, _, fail_at = lax.while_loop(
@@ -471,40 +474,31 @@ def _columns(table, cols):
 
 
 def _worklist(step, tables, state, pending, n_rounds, chunk):
-    """Run ``step`` rounds on the pending problems only, gathered into fixed-size chunks.
+    """Run ``step`` rounds on the pending problems only, gathered into chunks of ``chunk`` problems.
 
-    tables/state: tuples of (P, ...) arrays (tables are read-only); step(tables_rows, state_rows) returns the
+    tables: read-only (P,) or (L, P) arrays; state: (P,) arrays; step(table_columns, state_rows) returns the
     new state rows and their pending flags.  Each round compacts the pending problems and runs them in as many
-    chunks of ``chunk`` problems as they need or, when fewer remain, in the smallest chunk size of a ladder
-    (chunk / _LADDER_RATIO^k, down to _MIN_CHUNK) that holds them: the last rounds hold a few stragglers,
-    which should not pay for a full chunk (about 30% of the solve at 256 scenes).  The loop ends when
-    nothing is pending, so the cost follows the actual work.
-    Only ever traced outside vmap (the custom_vmap rule hands it the whole batch).
+    chunks as they fill; the loop ends when nothing is pending (or after n_rounds), so the cost follows the
+    actual work.  Only ever traced outside vmap (the custom_vmap rule hands it the whole batch).
     """
     n_prob = pending.shape[0]
-    sizes = [max(1, min(chunk, n_prob))]
-    while sizes[-1] // _LADDER_RATIO >= _MIN_CHUNK:
-        sizes.append(sizes[-1] // _LADDER_RATIO)
-    n_chunks = -(-n_prob // sizes[0])
+    size = max(1, min(chunk, n_prob))
+    n_chunks = -(-n_prob // size)
 
-    def run_chunks(size, carry, order, count):
-        def body(c, carry):
+    def run_round(carry):
+        state, pending, rounds = carry
+        count = jnp.sum(pending, dtype=jnp.int32)
+        order = jnp.nonzero(pending, size=n_chunks * size, fill_value=n_prob)[0].astype(jnp.int32)
+
+        def run_chunk(c, carry):
             state, pending = carry
-            sel = lax.dynamic_slice(order, (c * size,), (size,))
+            sel = lax.dynamic_slice_in_dim(order, c * size, size)
             rows = jnp.minimum(sel, n_prob - 1)
             new, pend = step(tuple(_columns(t, rows) for t in tables), tuple(x[rows] for x in state))
             state = tuple(x.at[sel].set(v, mode="drop") for x, v in zip(state, new))  # padding is dropped
             return state, pending.at[sel].set(pend, mode="drop")
 
-        return lax.fori_loop(0, (count + size - 1) // size, body, carry)
-
-    def run_round(carry):
-        state, pending, rounds = carry
-        count = jnp.sum(pending, dtype=jnp.int32)
-        order = jnp.nonzero(pending, size=n_chunks * sizes[0], fill_value=n_prob)[0].astype(jnp.int32)
-        which = jnp.sum(jnp.asarray(sizes[1:], jnp.int32) >= count, dtype=jnp.int32)  # index into sizes
-        branches = [lambda cr, s=s: run_chunks(s, cr, order, count) for s in sizes]
-        state, pending = lax.switch(which, branches, (state, pending))
+        state, pending = lax.fori_loop(0, (count + size - 1) // size, run_chunk, (state, pending))
         return state, pending, rounds + 1
 
     def more(carry):
