@@ -2,7 +2,7 @@
 
 LLVM, and with it XLA:CPU, emits 256-bit vectors by default even where the CPU has AVX-512 (wide vectors once
 cost clock speed on early AVX-512 chips). The environment's hot loops (the ORCA solver's linear programs, one
-problem per vector lane) run about 15-20% faster with 512-bit vectors on the AMD EPYC (Zen 4) this project is
+problem per vector lane) run about 15-30% faster with 512-bit vectors on the AMD EPYC (Zen 4) this project is
 measured on, with identical ORCA results. XLA reads its flags once, when JAX first touches its backend, so
 :func:`prefer_wide_vectors` runs when ``tgrf_jax`` is imported and does nothing once the backend exists.
 A ``--xla_cpu_prefer_vector_width`` already in ``XLA_FLAGS`` (e.g. ``=256``, LLVM's default) is left alone.

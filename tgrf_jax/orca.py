@@ -201,8 +201,8 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
 # ---------------------------------------------------------------------------------------------------------
 # linear programs, event driven
 #
-# Arrays are (P, L): P independent problems (agents), L line slots in arbitrary order; ``rank`` (P, L) gives
-# each line's position in RVO2's sequence and ``valid`` marks the lines that exist.  RVO2 walks the lines in
+# Arrays are (L, P): L line slots in arbitrary order, P independent problems (agents) on the minor axis;
+# ``rank`` (L, P) gives each line's position in RVO2's sequence and ``valid`` marks the lines that exist.  RVO2 walks the lines in
 # order and does O(L) work only at lines that the running result violates (about 2 per agent in crowds), so
 # instead of a dense O(L^2) precompute every "round" jumps each problem to its next violated line.
 
@@ -245,14 +245,6 @@ def _min_key(hit_row, rank, n_slots):
     for j in range(1, n):
         key = jnp.minimum(key, jnp.where(hit_row(j), _pack(rank[j], j, n), none))
     return key
-
-
-def _first_line(hit_fn, args, rank, n_slots):
-    """Slot and rank of the lowest-ranked line where hit_fn(*args) (L, P) holds; rank == n_slots if none.
-    The hit mask and the min over lines are one loop whose result is materialised (:func:`_computed_once`)."""
-    n = rank.shape[0]
-    key = _computed_once(lambda rank, *args: _min_key(lambda j: hit_fn(*args)[j], rank, n_slots), rank, *args)
-    return _key_slot(key, n), _key_rank(key, n)
 
 
 def _computed_once(fn, *args):
@@ -339,17 +331,6 @@ def _lp2_start(radius, optx, opty, direction_opt):
     return jnp.where(clamp, (optx * inv) * radius, optx), jnp.where(clamp, (opty * inv) * radius, opty)
 
 
-def _next_violated(lines, rank, valid, after, rx, ry, depth):
-    """Slot and rank of the lowest-ranked valid line with rank > after whose penetration det(d, p - r)
-    exceeds depth (rank == n_slots if none): where RVO2's loop does work next."""
-    def hit(px, py, dx, dy, rank, valid, after, rx, ry, depth):
-        penetration = _det(dx, dy, px - rx[None, :], py - ry[None, :])
-        return valid & (rank > after[None, :]) & (penetration > depth[None, :])
-
-    depth = jnp.broadcast_to(jnp.asarray(depth, rx.dtype), rx.shape)
-    return _first_line(hit, tuple(lines) + (rank, valid, after, rx, ry, depth), rank, rank.shape[0])
-
-
 def _next_key(radius, take, key, r, px, py, dx, dy, valid, rank, depth):
     """Packed key of the lowest-ranked valid line ranked after ``key`` whose penetration det(d, p - r) exceeds
     depth, where ``take`` holds (none elsewhere): where RVO2's loop does work next.  One loop."""
@@ -426,7 +407,7 @@ def _lp2_dense(lines, rank, valid, radius, optx, opty, direction_opt):
     r, _, fail_at = lax.while_loop(
         lambda s: jnp.min(s[1]) < _none_key(n),
         lambda s: _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, s), state)
-    return jnp.real(r), jnp.imag(r), fail_at
+    return r, fail_at
 
 
 def _projected_lines(pix, piy, dix, diy, px, py, dx, dy):
@@ -445,23 +426,23 @@ def _projected_lines(pix, piy, dix, diy, px, py, dx, dy):
 def _lp3_round(lines, rank, valid, radius, state):
     """One step of linearProgram3: the pending line is penetrated deeper than the current worst; minimise its
     penetration subject to the earlier lines not exceeding it (direction-mode LP2 on the projected lines),
-    then look ahead to the next such line.  state = (rx, ry, distance, next_slot, next_rank)."""
+    then look ahead to the next such line.  state = (r, distance, key): the result as complex(x, y), the
+    current worst penetration and the packed key of the pending line (rank L: none)."""
     px, py, dx, dy = lines
-    rx, ry, distance, b, i_rank = state
-    n_slots = px.shape[0]
+    r, distance, key = state
+    n = px.shape[0]
+    b, i_rank = _key_slot(key, n), _key_rank(key, n)
     pix, piy, dix, diy = (p[None, :] for p in (_pick(x, b) for x in lines))
 
     projected = _componentwise(_projected_lines, (pix, piy, dix, diy) + tuple(lines), 4, px.shape)
     parallel = jnp.abs(_det(dix, diy, dx, dy)) <= RVO_EPSILON
     qvalid = valid & (rank < i_rank[None, :]) & ~(parallel & (dix * dx + diy * dy > 0.0))
     nx, ny = -diy[0], dix[0]  # optimise towards line i's valid side
-    sx, sy, lp2_fail = _lp2_dense(projected, rank, qvalid, radius, nx, ny, True)
-    take = lp2_fail == n_slots  # a failed inner LP2 (rounding) keeps the result, as in RVO2
-    rx = jnp.where(take, sx, rx)
-    ry = jnp.where(take, sy, ry)
-    distance = _det(dix[0], diy[0], pix[0] - rx, piy[0] - ry)
-    slot, nxt = _next_violated(lines, rank, valid, i_rank, rx, ry, distance)
-    return rx, ry, distance, slot, nxt
+    s, lp2_fail = _lp2_dense(projected, rank, qvalid, radius, nx, ny, True)
+    r = jnp.where(lp2_fail == n, s, r)  # a failed inner LP2 (rounding) keeps the result, as in RVO2
+    distance = _det(dix[0], diy[0], pix[0] - jnp.real(r), piy[0] - jnp.imag(r))
+    key = _computed_once(_next_key, radius, jnp.ones(r.shape, bool), key, r, *lines, valid, rank, distance)
+    return r, distance, key
 
 
 def _columns(table, cols):
@@ -513,31 +494,31 @@ def _worklist(step, tables, state, pending, n_rounds, chunk):
 
 def _linear_program2(lines, rank, radius, optx, opty):
     """linearProgram2 for every problem (lines (L, P), rank (L, P), the rest (P,)): dense rounds over blocks of
-    consecutive problems.  Returns (rx, ry, fail_at)."""
-    n_slots = rank.shape[0]
+    consecutive problems.  Returns the result as complex(x, y) and the rank of the line where it failed (L:
+    none)."""
+    n = rank.shape[0]
 
     def solve_block(px, py, dx, dy, rank, radius, optx, opty):
-        return _lp2_dense((px, py, dx, dy), rank, rank < n_slots, radius, optx, opty, False)
+        return _lp2_dense((px, py, dx, dy), rank, rank < n, radius, optx, opty, False)
 
-    return _blocked(solve_block, tuple(lines) + (rank, radius, optx, opty), (jnp.float32, jnp.float32, jnp.int32),
+    return _blocked(solve_block, tuple(lines) + (rank, radius, optx, opty), (jnp.complex64, jnp.int32),
                     _LP2_BLOCK)
 
 
-def _linear_program3(lines, rank, radius, rx, ry, fail_at):
+def _linear_program3(lines, rank, radius, r, fail_at):
     """linearProgram3 from the failing line (violated by the current result), only for the problems whose
-    linearProgram2 failed (fail_at < L), as a worklist.  Returns the new (rx, ry)."""
+    linearProgram2 failed (fail_at < L), as a worklist.  Returns the new result (complex)."""
     n = rank.shape[0]
-    fail_slot, _ = _first_line(lambda rank, fail_at: (rank < n) & (rank == fail_at[None, :]), (rank, fail_at),
-                               rank, n)
+    fail_key = _computed_once(
+        lambda rank, fail_at: _min_key(lambda j: (rank[j] < n) & (rank[j] == fail_at), rank, n), rank, fail_at)
 
     def lp3_step(t, s):
         new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s)
-        return new, new[4] < n
+        return new, new[2] < _none_key(n)
 
     tables = tuple(lines) + (rank, radius)
-    rx, ry, *_ = _worklist(lp3_step, tables, (rx, ry, jnp.zeros_like(rx), fail_slot, fail_at), fail_at < n, n,
-                           _LP3_CHUNK)
-    return rx, ry
+    state = (r, jnp.zeros(r.shape, jnp.float32), fail_key)
+    return _worklist(lp3_step, tables, state, fail_at < n, n, _LP3_CHUNK)[0]
 
 
 def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_dist, *, k):
@@ -563,9 +544,9 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     lines = tuple(x.reshape(n, a) for x in out[:4])
     rank = out[4].reshape(n, a)
 
-    rx, ry, fail_at = _linear_program2(lines, rank, radius, ox, oy)
-    rx, ry = _linear_program3(lines, rank, radius, rx, ry, fail_at)
-    failed = fail_at < n
+    r, fail_at = _linear_program2(lines, rank, radius, ox, oy)
+    r = _linear_program3(lines, rank, radius, r, fail_at)
+    rx, ry, failed = jnp.real(r), jnp.imag(r), fail_at < n
     return jnp.stack([scene_major(rx), scene_major(ry)], -1), scene_major(failed)
 
 
