@@ -156,11 +156,12 @@ def _componentwise(fn, args, n_out, shape, extra=()):
 def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
     """ORCA lines of every agent towards every other agent, plus RVO2's neighbour order.
 
-    Inputs are (B, N); inv_th, inv_dt, range_sq are (B,).  Outputs are (B, N, N) with [s, a, b] = agent a's
-    line towards agent b: point/direction components, ``rank`` (b's position in a's distance-sorted
-    neighbour list, i.e. the line's index in RVO2's orcaLines_; n where b is not one of a's ``k`` nearest
-    neighbours within range) and ``active`` (rank < n).  The lines stay in agent-index order; the LPs follow
-    ``rank``, so nothing is sorted.  Equal distances rank by agent index (RVO2: kd-tree visiting order).
+    Inputs are (N, B) (agent, scene); inv_th, inv_dt, range_sq are (B,).  Outputs are (N, N, B) with
+    [b, a, s] = agent a's line towards agent b in scene s: the point/direction components and ``rank`` (b's
+    position in a's distance-sorted neighbour list, i.e. the line's index in RVO2's orcaLines_; n where b is
+    not one of a's ``k`` nearest neighbours within range).  The lines stay in agent-index order; the LPs
+    follow ``rank``, so nothing is sorted.  Equal distances rank by agent index (RVO2: kd-tree visiting
+    order).
     """
     n = px.shape[0]
     idx = jnp.arange(n)
@@ -194,8 +195,7 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
 
     args = (px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq)
     *lines, rank = _componentwise(pair_lines, args, 4, (n,) + px.shape, extra=(line_rank,))
-    rank = rank.astype(jnp.int32)
-    return tuple(lines) + (rank, rank < n)
+    return tuple(lines) + (rank.astype(jnp.int32),)
 
 
 # ---------------------------------------------------------------------------------------------------------
