@@ -202,9 +202,10 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
 # linear programs, event driven
 #
 # Arrays are (L, P): L line slots in arbitrary order, P independent problems (agents) on the minor axis;
-# ``rank`` (L, P) gives each line's position in RVO2's sequence and ``valid`` marks the lines that exist.  RVO2 walks the lines in
-# order and does O(L) work only at lines that the running result violates (about 2 per agent in crowds), so
-# instead of a dense O(L^2) precompute every "round" jumps each problem to its next violated line.
+# ``rank`` (L, P) gives each line's position in RVO2's sequence and ``valid`` marks the lines that exist.
+# RVO2 walks the lines in order and does O(L) work only at lines that the running result violates (about 2
+# per agent in crowds), so instead of a dense O(L^2) precompute every "round" jumps each problem to its next
+# violated line.
 
 
 def _pick(x, b):
