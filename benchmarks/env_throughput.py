@@ -130,7 +130,7 @@ def breakdown(policy: str, num_humans: int, batch: int, repeats: int) -> dict:
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     actions = jax.vmap(StraightPolicy.action)(obs)
     pieces = {
-        "human_policy": (lambda s: humans_lib.human_velocities(s.humans, None, params, env.config), (state,)),
+        "human_policy": (lambda s: humans_lib.human_velocities(s.humans, None, params, env.config, s.orca_neighbor_dist), (state,)),
         "reset": (lambda k: env.reset(k, params), (keys,)),
         "step_without_reset": (lambda k, s, a: env.step_env(k, s, a, params), (keys, state, actions)),
         "step_with_auto_reset": (lambda k, s, a: env.step(k, s, a, params), (keys, state, actions)),

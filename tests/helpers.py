@@ -12,7 +12,8 @@ def make_env(**overrides) -> CrowdNavEnv:
     return CrowdNavEnv(overrides, reward)
 
 
-def hand_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None, radius=0.3, v_pref=1.0):
+def hand_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None, radius=0.3, v_pref=1.0,
+               neighbor_dist=10.0):
     """An EnvState with the robot and humans exactly where a test wants them."""
     human_pos = jnp.asarray(human_pos, jnp.float32).reshape(-1, 2)
     n = human_pos.shape[0]
@@ -28,7 +29,7 @@ def hand_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None
         radius=jnp.full((n,), radius, jnp.float32), v_pref=jnp.full((n,), v_pref, jnp.float32),
     )
     return EnvState(robot=robot, humans=humans, goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
-                    step_count=jnp.zeros((), jnp.int32))
+                    step_count=jnp.zeros((), jnp.int32), orca_neighbor_dist=jnp.float32(neighbor_dist))
 
 
 def rollout(env, key, params, n_steps, policy_fn):

@@ -220,3 +220,47 @@ def test_step_batch_shares_fresh_episodes_among_finished_envs(num_resets):
             shared_seen = True
     if num_resets == 1:
         assert shared_seen
+
+
+def test_orca_neighbor_distance_is_drawn_per_episode_and_fixed_within_it():
+    env = make_env(num_humans=4)
+    params = env.default_params
+    _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(5), 256), params)
+    nd = np.asarray(state.orca_neighbor_dist)
+    assert np.all((nd >= 5.0) & (nd < 10.0)) and nd.std() > 1.0  # U(5, 10): std 1.44
+    states = rollout(env, jax.random.key(6), params, 30, to_goal)[0]
+    fresh = np.asarray(states.step_count) == 0
+    drawn = np.asarray(states.orca_neighbor_dist)
+    same_episode = ~fresh[1:]
+    np.testing.assert_array_equal(drawn[1:][same_episode], drawn[:-1][same_episode])
+    fixed = env.default_params.replace(orca_neighbor_dist_min=jnp.float32(7.0), orca_neighbor_dist_max=jnp.float32(7.0))
+    _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(5), 8), fixed)
+    np.testing.assert_array_equal(state.orca_neighbor_dist, 7.0)
+
+
+def test_neighbor_distance_changes_the_crowd():
+    # Two humans 6 m apart walking towards each other: within a 7 m neighbourhood they avoid each other at
+    # once, with a 5 m one they walk straight on for the first step.
+    env = make_env(num_humans=2, predictor="none")
+    params = env.default_params
+    pos, goal = [[-3.0, 0.0], [3.0, 0.1]], [[10.0, 0.0], [-10.0, 0.1]]
+    near = hand_state([0.0, -20.0], [0.0, -30.0], pos, human_goal=goal, neighbor_dist=5.0)
+    far = hand_state([0.0, -20.0], [0.0, -30.0], pos, human_goal=goal, neighbor_dist=7.0)
+    _, s_near, *_ = env.step_env(jax.random.key(0), near, jnp.zeros(2), params)
+    _, s_far, *_ = env.step_env(jax.random.key(0), far, jnp.zeros(2), params)
+    assert abs(float(s_near.humans.vel[0, 1])) < 1e-6 < abs(float(s_far.humans.vel[0, 1]))
+
+
+def test_terminal_step_is_never_a_future_intrusion():
+    # The robot steps onto its goal in the path of a human walking at it: the step ends the episode, so it
+    # is no intrusion; the same step short of the goal is one.
+    env = make_env(num_humans=1, predictor="none", track_future_intrusion=True)
+    params = env.default_params
+    human, human_goal = [[0.0, 1.5]], [[0.0, -50.0]]
+    reach = hand_state([0.0, -0.25], [0.0, 0.0], human, human_goal=human_goal)
+    near = hand_state([0.0, -0.25], [0.0, 5.0], human, human_goal=human_goal)
+    *_, term, _, info_reach = env.step_env(jax.random.key(0), reach, jnp.array([0.0, 1.0]), params)
+    *_, term_near, _, info_near = env.step_env(jax.random.key(0), near, jnp.array([0.0, 1.0]), params)
+    assert bool(term) and int(info_reach.outcome) == SUCCESS and not bool(info_reach.intrusion_future)
+    assert np.isinf(float(info_reach.future_dist))
+    assert not bool(term_near) and bool(info_near.intrusion_future) and float(info_near.future_dist) < 0.6

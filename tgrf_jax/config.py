@@ -288,7 +288,10 @@ class EnvConfig:
     goal_change_prob: float = spec(0.5, low=0.0, high=1.0)
     intrusion_radius: float = spec(0.6, low=0.0, doc="itr_future: centre distance to a true future position")
     orca_time_horizon: float = spec(5.0, low=0.0, low_inclusive=False)
-    orca_neighbor_dist: float = spec(10.0, low=0.0, low_inclusive=False)
+    orca_neighbor_dist_min: float = spec(
+        5.0, low=0.0, low_inclusive=False, doc="humans' ORCA neighbour distance ~ U(min, max), drawn per episode"
+    )
+    orca_neighbor_dist_max: float = spec(10.0, low=0.0, low_inclusive=False, doc="min = max: a fixed distance")
     orca_safety_space: float = spec(0.15, low=0.0)
     sf_a: float = spec(2.0, low=0.0)
     sf_b: float = spec(1.0, low=0.0, low_inclusive=False)
@@ -299,7 +302,8 @@ class EnvConfig:
 
     def __post_init__(self):
         check_fields(self, "env")
-        pairs = [("human_radius_min", "human_radius_max"), ("human_v_pref_min", "human_v_pref_max")]
+        pairs = [("human_radius_min", "human_radius_max"), ("human_v_pref_min", "human_v_pref_max"),
+                 ("orca_neighbor_dist_min", "orca_neighbor_dist_max")]
         for lo, hi in pairs:
             if getattr(self, lo) > getattr(self, hi):
                 raise ConfigError(

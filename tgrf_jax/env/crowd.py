@@ -193,14 +193,19 @@ class CrowdNavEnv:
         tries = self.config.spawn_tries
         robot = scenario.sample_robot(k_robot, params, tries)
         humans = scenario.spawn_humans(k_humans, params, robot, self.config.num_humans, tries)
+        # A key of its own (folded, not split) keeps the robot and crowd of an episode what they were before
+        # the neighbour distance became random.
+        neighbor_dist = scenario.uniform(jax.random.fold_in(key, 1), (), params.orca_neighbor_dist_min,
+                                         params.orca_neighbor_dist_max)
         state = EnvState(
             robot=robot,
             humans=humans,
             goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
             step_count=jnp.zeros((), jnp.int32),
+            orca_neighbor_dist=neighbor_dist,
         )
         visible = sensing.visible_mask(state, params)
-        predictions = humans_lib.predict(humans, params, self.config)
+        predictions = humans_lib.predict(humans, params, self.config, neighbor_dist)
         return sensing.observe(state, params, predictions, visible), state
 
     def step_env(self, key, state: EnvState, action, params: EnvParams):
@@ -211,7 +216,8 @@ class CrowdNavEnv:
         robot0, humans0 = state.robot, state.humans
 
         robot, delta_heading = move_robot(robot0, action, params, cfg.kinematics)
-        human_vel = humans_lib.human_velocities(humans0, robot0 if cfg.robot_visible else None, params, cfg)
+        human_vel = humans_lib.human_velocities(humans0, robot0 if cfg.robot_visible else None, params, cfg,
+                                                state.orca_neighbor_dist)
         humans = humans0.replace(pos=humans0.pos + human_vel * params.dt, vel=human_vel)
 
         # Outcome of the action, judged on the post-step state (collision swept over the step).
@@ -227,12 +233,10 @@ class CrowdNavEnv:
         if cfg.num_humans > 0:
             humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.goal_tries)
             humans = scenario.respawn_arrived(k_respawn, humans, robot, params, cfg.spawn_tries)
-        next_state = EnvState(
-            robot=robot, humans=humans, goal_dist_ref=state.goal_dist_ref, step_count=step_count
-        )
+        next_state = state.replace(robot=robot, humans=humans, step_count=step_count)
 
         visible = sensing.visible_mask(next_state, params)
-        predictions = humans_lib.predict(humans, params, cfg)
+        predictions = humans_lib.predict(humans, params, cfg, state.orca_neighbor_dist)
         if predictions is None:
             pred_hits = jnp.zeros((cfg.num_humans, 1), bool)
         else:
@@ -260,7 +264,11 @@ class CrowdNavEnv:
             [collided, reached, truncated], [COLLISION, SUCCESS, TIMEOUT], RUNNING
         ).astype(jnp.int32)
 
-        future_hit, future_dist = self._future_intrusion(humans, robot.pos, visible, predictions, params)
+        # The episode's last step never counts as an intrusion (it is counted in the ITR's denominator), as in
+        # the reference, whose danger check comes after the goal, collision and timeout checks.
+        future_hit, future_dist = self._future_intrusion(next_state, visible, predictions, params)
+        future_hit = future_hit & ~(terminated | truncated)
+        future_dist = jnp.where(future_hit, future_dist, jnp.inf)
         obs = sensing.observe(next_state, params, predictions, visible)
         info = Info(
             outcome=outcome,
@@ -276,7 +284,7 @@ class CrowdNavEnv:
         )
         return obs, next_state, terms.total, terminated, truncated, info
 
-    def _future_intrusion(self, humans, robot_pos, visible, predictions, params):
+    def _future_intrusion(self, state: EnvState, visible, predictions, params):
         """itr_future: robot centre within intrusion_radius of a visible human's true position at t+1..t+K."""
         cfg = self.config
         if not cfg.track_future_intrusion or cfg.num_humans == 0:
@@ -284,8 +292,8 @@ class CrowdNavEnv:
         if cfg.predictor == "truth":
             future = predictions
         else:
-            future = humans_lib.true_future(humans, params, cfg, cfg.pred_horizon)
-        dist = norm(future - robot_pos)
+            future = humans_lib.true_future(state.humans, params, cfg, cfg.pred_horizon, state.orca_neighbor_dist)
+        dist = norm(future - state.robot.pos)
         dist = jnp.where(visible[:, None], dist, jnp.inf)
         nearest = jnp.min(dist, initial=jnp.inf)
         hit = nearest < params.intrusion_radius

@@ -22,11 +22,12 @@ def preferred_velocity(pos, goal):
 ORCA_RADIUS_PAD = 0.01
 
 
-def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, config: EnvConfig):
+def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, config: EnvConfig, neighbor_dist):
     """New velocities (N, 2) of all humans from the current joint state.
 
     `robot` is None when humans do not see the robot (the default); otherwise it joins the solve as an extra
-    agent whose own result is discarded.
+    agent whose own result is discarded. `neighbor_dist` is the episode's ORCA neighbour distance
+    (`EnvState.orca_neighbor_dist`).
     """
     n = humans.pos.shape[0]
     if n == 0:
@@ -45,7 +46,7 @@ def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, con
         new_vel = orca.solve(
             pos, vel, radius + ORCA_RADIUS_PAD + params.orca_safety_space, pref, v_pref,
             time_horizon=params.orca_time_horizon, dt=params.dt,
-            neighbor_dist=params.orca_neighbor_dist, max_neighbors=config.max_neighbors,
+            neighbor_dist=neighbor_dist, max_neighbors=config.max_neighbors,
         )
     else:
         new_vel = social_force.step(
@@ -54,7 +55,7 @@ def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, con
     return new_vel[:n]
 
 
-def predict(humans: Humans, params: EnvParams, config: EnvConfig):
+def predict(humans: Humans, params: EnvParams, config: EnvConfig, neighbor_dist):
     """Predicted world positions (N, K, 2) at t+1..t+K, or None for predictor 'none'.
 
     const_vel extrapolates the last applied velocity; truth rolls the human model itself forward K steps from
@@ -66,14 +67,14 @@ def predict(humans: Humans, params: EnvParams, config: EnvConfig):
     if config.predictor == "const_vel":
         steps = jnp.arange(1, k + 1, dtype=jnp.float32)[None, :, None] * params.dt
         return humans.pos[:, None, :] + steps * humans.vel[:, None, :]
-    return true_future(humans, params, config, k)
+    return true_future(humans, params, config, k, neighbor_dist)
 
 
-def true_future(humans: Humans, params: EnvParams, config: EnvConfig, k: int):
+def true_future(humans: Humans, params: EnvParams, config: EnvConfig, k: int, neighbor_dist):
     """Ground-truth future positions (N, k, 2) of the humans' own policy, goals frozen, robot invisible."""
 
     def advance(h: Humans, _):
-        vel = human_velocities(h, None, params, config)
+        vel = human_velocities(h, None, params, config, neighbor_dist)
         h = h.replace(pos=h.pos + vel * params.dt, vel=vel)
         return h, h.pos
 

@@ -41,7 +41,8 @@ class EnvParams:
     goal_change_prob: jnp.ndarray
     intrusion_radius: jnp.ndarray
     orca_time_horizon: jnp.ndarray
-    orca_neighbor_dist: jnp.ndarray
+    orca_neighbor_dist_min: jnp.ndarray
+    orca_neighbor_dist_max: jnp.ndarray
     orca_safety_space: jnp.ndarray
     sf_a: jnp.ndarray
     sf_b: jnp.ndarray
@@ -95,6 +96,7 @@ class EnvState:
     humans: Humans
     goal_dist_ref: jnp.ndarray  # () goal distance at the last step outside the danger zone (for r_pot)
     step_count: jnp.ndarray  # () int32 steps taken in this episode
+    orca_neighbor_dist: jnp.ndarray  # () the humans' ORCA neighbour distance, drawn once per episode
 
 
 @struct.dataclass
