@@ -33,7 +33,7 @@ def test_bad_env_config_names_field_and_allowed_values(data, pattern):
 def test_bad_reward_config():
     with pytest.raises(ConfigError, match=r"reward.sigma_disc = 0.0 is out of range; allowed: > 0.0"):
         reward_config_from_dict({"sigma_disc": 0})
-    with pytest.raises(ConfigError, match=r"reward.scheme = 'scan' is not allowed; allowed: 'tgrf', 'crowdnav_pp', 'dsrnn'"):
+    with pytest.raises(ConfigError, match=r"reward.scheme = 'scan' is not allowed; allowed: 'tgrf', 'crowdnav_pp', 'dsrnn', 'tgrf_circle'"):
         reward_config_from_dict({"scheme": "scan"})
     with pytest.raises(ConfigError, match=r"unknown config key 'reward.hdisc' \(did you mean 'h_disc'\?\)"):
         reward_config_from_dict({"hdisc": 1.0})

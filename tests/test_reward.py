@@ -33,9 +33,19 @@ def test_crowdnav_pp_linear_disc_and_potential():
     assert float(R.pot_reward(0.25, R.reward_params("tgrf"))) == pytest.approx(0.375)
 
 
+def test_tgrf_circle_is_the_tgrf_code_with_its_gaussian_off():
+    # r_disc = 10 * (dmin - 0.5) * dt with d_disc 0.5, r_col -10 and 1.5 x progress (SPEC 3.3)
+    p = R.reward_params("tgrf_circle")
+    assert float(R.disc_reward(jnp.float32(0.1), p)) == pytest.approx(-1.0, abs=1e-6)
+    assert float(R.pot_reward(0.25, p)) == pytest.approx(0.375)
+    terms = R.step_reward(p, collided=True, reached=False, dmin=-0.1, delta_d=0.0,
+                          pred_hits=jnp.zeros((1, 5), bool))
+    assert float(terms.total) == pytest.approx(-10.0)
+
+
 @pytest.mark.parametrize(
     "scheme, k, expected",
-    [("tgrf", 1, -2.5), ("tgrf", 5, -0.15625), ("crowdnav_pp", 1, -5.0), ("dsrnn", 1, 0.0)],
+    [("tgrf", 1, -2.5), ("tgrf", 5, -0.15625), ("crowdnav_pp", 1, -5.0), ("dsrnn", 1, 0.0), ("tgrf_circle", 1, -2.5)],
 )
 def test_pred_reward_per_step(scheme, k, expected):
     hits = jnp.zeros((3, 5), bool).at[1, k - 1].set(True)
@@ -107,7 +117,7 @@ def test_step_reward_priorities():
 
 
 def test_unknown_scheme_and_field_are_rejected():
-    with pytest.raises(ValueError, match="valid schemes: tgrf, crowdnav_pp, dsrnn"):
+    with pytest.raises(ValueError, match="valid schemes: tgrf, crowdnav_pp, dsrnn, tgrf_circle"):
         R.reward_params("scan")
     with pytest.raises(ValueError, match="h_dsic"):
         R.reward_params("tgrf", h_dsic=1.0)

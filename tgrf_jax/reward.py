@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-SCHEMES = ("tgrf", "crowdnav_pp", "dsrnn")
+SCHEMES = ("tgrf", "crowdnav_pp", "dsrnn", "tgrf_circle")
 
 
 def tgrf(x, h, sigma, mu=0.0):
@@ -51,7 +51,10 @@ class RewardParams:
 
 # Scheme defaults. `tgrf` is the paper's eq. 5 as the authors' code runs it (h_disc is the absolute peak:
 # 0.25 x |r_col| = 2.5); `crowdnav_pp` is the CrowdNav++ reward (the paper's "without TGRF" baseline);
-# `dsrnn` is CrowdNav++ without the prediction term. SPEC A.3 / B 3.1-3.3.
+# `dsrnn` is CrowdNav++ without the prediction term; `tgrf_circle` is what the TGRF authors' code runs with its
+# Gaussian turned off (danger_zone_type 'circle'): CrowdNav++'s linear r_disc, but with TGRF's r_col -10,
+# d_disc 0.5 and 1.5 x progress. The paper does not say which of the two its "without TGRF" rows used.
+# SPEC A.3 / B 3.1-3.3.
 SCHEME_DEFAULTS: dict[str, dict[str, float]] = {
     "tgrf": dict(
         r_goal=10.0, r_col=-10.0, d_disc=0.5, h_disc=2.5, sigma_disc=0.2, disc_slope=0.0,
@@ -66,6 +69,11 @@ SCHEME_DEFAULTS: dict[str, dict[str, float]] = {
     "dsrnn": dict(
         r_goal=10.0, r_col=-20.0, d_disc=0.25, h_disc=0.0, sigma_disc=0.2, disc_slope=2.5,
         pot_factor=2.0, sigma_pot=1000.0, pred_penalty=0.0, pred_c=1.0, pred_radius=0.6,
+        spin_coef=4.5, back_coef=2.0,
+    ),
+    "tgrf_circle": dict(
+        r_goal=10.0, r_col=-10.0, d_disc=0.5, h_disc=0.0, sigma_disc=0.2, disc_slope=2.5,
+        pot_factor=1.5, sigma_pot=1000.0, pred_penalty=-10.0, pred_c=1.0, pred_radius=0.6,
         spin_coef=4.5, back_coef=2.0,
     ),
 }
