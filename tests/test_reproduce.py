@@ -1,0 +1,144 @@
+"""tgrf-reproduce: experiment files, the resumable row runner and the paper-layout report."""
+
+import csv
+import math
+import pathlib
+
+import pytest
+import yaml
+
+from tgrf_jax.config import ConfigError
+from tgrf_jax.experiments import report, runner
+from tgrf_jax.experiments import spec as spec_lib
+from tgrf_jax.experiments.cli import main
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = str(ROOT / "configs" / "tiny.yaml")
+PAPER = {"sr_mean": 50.0, "sr_std": 5.0, "sr": 55.0, "nt": 20.0, "pl": 21.0, "itr": 5.0}
+
+
+def write_experiment(path, **changes):
+    data = {
+        "title": "tiny table", "layout": "table", "config": TINY, "seeds": 2,
+        "set": {"ppo.total_steps": 256, "run.eval_episodes": 4},
+        "grid": {"reward.scheme": ["crowdnav_pp", "tgrf"]},
+        "columns": {"tgrf": "With TGRF"},
+        "rows": [{"name": "mlp", "label": "MLP", "paper": {"tgrf": PAPER}}],
+    }
+    data.update(changes)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("name", spec_lib.available())
+def test_shipped_experiments_validate(name):
+    exp = spec_lib.load(name)
+    assert exp.rows and exp.seeds >= 2
+    for row in exp.rows:
+        runs = spec_lib.sweep_spec(exp, row).runs()
+        assert len(runs) == exp.seeds * math.prod(len(values) for _, values in row.grid)
+
+
+def test_paper_tables_hold_every_row_of_the_paper():
+    t1, t2 = spec_lib.load("table1"), spec_lib.load("table2")
+    assert t1.row("const_vel").paper["tgrf"]["sr_mean"] == pytest.approx(87.909)
+    assert t1.row("truth").paper["crowdnav_pp"]["sr_mean"] == pytest.approx(5.545)
+    assert t2.row("no_pred").paper["crowdnav_pp"]["sr"] == pytest.approx(28.0)
+    for exp in (t1, t2):
+        for row in exp.rows:
+            assert set(row.paper) == {"crowdnav_pp", "tgrf"}
+            assert all(set(v) == set(spec_lib.PAPER_FIELDS) for v in row.paper.values())
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"seeds": 0}, "seeds = 0 must be an integer from 1 to 100"),
+    ({"layout": "pie"}, "layout = 'pie' is not allowed"),
+    ({"colour": 1}, "unknown key(s) ['colour']"),
+    ({"grid": {}}, "grid must map at least one dotted field"),
+    ({"rows": [{"name": "a", "set": {"ppo.lrr": 1}}]}, "row 'a': unknown config key 'ppo.lrr'"),
+    ({"rows": [{"name": "a", "set": {"ppo.lr": -1}}]}, "row 'a': ppo.lr = -1"),
+    ({"rows": [{"name": "a"}, {"name": "a"}]}, "name 'a' must be unique"),
+    ({"rows": [{"name": "a", "paper": {"dsrnn": PAPER}}]}, "'dsrnn' is not a value of the compared axis"),
+    ({"rows": [{"name": "a", "paper": {"tgrf": {"sr_meen": 1}}}]}, "unknown field(s) ['sr_meen']"),
+    ({"rows": [{"name": "a", "grid": {"reward.h_disc": [1.0]}}]}, "must have the experiment's axes"),
+    ({"grid": {"network.name": ["mlp", "dsrnn"]}, "rows": [{"name": "a"}]}, "network.name"),
+])
+def test_bad_experiment_files_are_rejected_naming_the_field(tmp_path, changes, message):
+    path = write_experiment(tmp_path / "exp.yaml", **changes)
+    with pytest.raises(ConfigError) as e:
+        spec_lib.load(str(path))
+    assert message in str(e.value)
+
+
+def test_cli_errors(tmp_path, capsys):
+    assert main(["nosuch"]) == 2
+    assert "unknown experiment 'nosuch'; experiments: sensitivity, table1, table2" in capsys.readouterr().err
+    assert main([str(tmp_path)]) == 2
+    assert "is a directory" in capsys.readouterr().err
+    path = write_experiment(tmp_path / "exp.yaml")
+    assert main([str(path), "--rows", "nope"]) == 2
+    assert "has no row 'nope'; rows: mlp" in capsys.readouterr().err
+    assert main([str(path), "--steps", "0"]) == 2
+    assert "--steps = 0 must be >= 1" in capsys.readouterr().err
+
+
+def test_report_cells_from_evals(tmp_path):
+    exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
+    row_dir = tmp_path / "out" / "mlp"
+    row_dir.mkdir(parents=True)
+    fields = ["run", "point", "seed", "reward.scheme", "success_rate", "nav_time", "path_length", "itr_future",
+              "itr_disc"]
+    rows = [
+        ["a", 0, 0, "crowdnav_pp", 0.50, 20.0, 21.0, 6.0, 7.0],
+        ["b", 0, 1, "crowdnav_pp", 0.70, 18.0, 19.0, 4.0, 5.0],
+        ["c", 1, 0, "tgrf", 0.90, 16.0, 17.0, 2.0, 3.0],
+        ["d", 1, 1, "tgrf", 0.80, 15.0, 16.0, 1.0, 2.0],
+    ]
+    with open(row_dir / "evals.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(fields)
+        w.writerows(rows)
+    records = report.collect(exp, tmp_path / "out")
+    cnpp, tgrf = records
+    assert cnpp["sr_mean"] == pytest.approx(60.0) and cnpp["sr_std"] == pytest.approx(14.142, abs=1e-3)
+    assert cnpp["best_seed"] == 1 and cnpp["sr"] == pytest.approx(70.0) and cnpp["nt"] == 18.0
+    assert tgrf["best_seed"] == 0 and tgrf["itr"] == 2.0 and tgrf["paper_sr_mean"] == 50.0
+    table = report.format_table(exp, records)
+    assert "| With TGRF | MLP | 85.0 ± 7.1 (50.0 ± 5.0) | 90.0 (55.0) | 16.00 (20.00) |" in table
+    assert "| crowdnav_pp | MLP | 60.0 ± 14.1 |" in table
+
+
+def test_row_states(tmp_path):
+    row = tmp_path / "r"
+    assert runner.row_state(row) == "new"
+    row.mkdir()
+    (row / "sweep.yaml").write_text("{}")
+    assert runner.row_state(row) == "stale"
+    (row / "checkpoints" / "4").mkdir(parents=True)
+    assert runner.row_state(row) == "resumable"
+    (row / "evals.csv").write_text("run\n")
+    assert runner.row_state(row) == "done"
+
+
+def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
+    exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml"))).shrunk(seeds=1)
+    out = tmp_path / "out"
+    lines = []
+    assert runner.reproduce(exp, out, log=lines.append) == 0
+    with open(out / "report.csv", newline="") as f:
+        records = {r["value"]: r for r in csv.DictReader(f)}
+    assert set(records) == {"crowdnav_pp", "tgrf"}
+    for rec in records.values():
+        assert rec["seeds"] == "1" and 0.0 <= float(rec["sr_mean"]) <= 100.0 and rec["commit"]
+    assert records["tgrf"]["paper_sr"] == "55.0" and records["crowdnav_pp"]["paper_sr"] == ""
+    md = (out / "report.md").read_text()
+    assert "Rows finished: 1/1" in md and "(55.0)" in md
+    # A finished experiment: nothing is trained again.
+    wall = (out / "mlp" / "provenance.json").read_text()
+    lines.clear()
+    assert runner.reproduce(exp, out, log=lines.append) == 0
+    assert (out / "mlp" / "provenance.json").read_text() == wall
+    assert not any("row 1/1" in line for line in lines)
+    # Other settings into the same directory are refused.
+    with pytest.raises(ConfigError, match="holds results of this experiment with other settings"):
+        runner.reproduce(exp.shrunk(steps=512), out)

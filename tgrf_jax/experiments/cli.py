@@ -1,0 +1,69 @@
+"""tgrf-reproduce: run one of the paper's experiments, resumably, and write its table as it fills."""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+from tgrf_jax.config import ConfigError
+from tgrf_jax.experiments import spec as spec_lib
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="tgrf-reproduce",
+        description="Run an experiment of the paper (a list of tgrf-sweeps, one per row) and write its report "
+        "(Markdown and CSV, our numbers beside the paper's) after every row. Rerun the same command after any "
+        "interruption: finished rows are skipped, a started row resumes from its last checkpoint.",
+    )
+    parser.add_argument("experiment", nargs="?",
+                        help=f"an experiment name ({', '.join(spec_lib.available())}) or a path to an experiment YAML")
+    parser.add_argument("--out", help="results directory (default: runs/reproduce/<experiment>)")
+    parser.add_argument("--steps", type=int, help="env steps per run instead of the experiment's budget (quick look)")
+    parser.add_argument("--seeds", type=int, help="seeds per cell instead of the experiment's")
+    parser.add_argument("--rows", help="comma-separated row names to run (default: all)")
+    parser.add_argument("--list", action="store_true", help="list the experiments and their rows, then exit")
+    parser.add_argument("--print-plan", action="store_true",
+                        help="print each row's tgrf-sweep command and state, then exit (nothing runs)")
+    parser.add_argument("--report-only", action="store_true", help="rewrite the report from finished rows and exit")
+    args = parser.parse_args(argv)
+
+    from tgrf_jax.experiments import report, runner
+
+    try:
+        if args.list:
+            for name in spec_lib.available():
+                exp = spec_lib.load(name)
+                print(f"{name}: {exp.title}")
+                for row in exp.rows:
+                    print(f"  {row.name}: {row.label}")
+            return 0
+        if not args.experiment:
+            raise ConfigError(f"name an experiment: {', '.join(spec_lib.available())}")
+        exp = spec_lib.load(args.experiment)
+        rows = [r.strip() for r in args.rows.split(",") if r.strip()] if args.rows else None
+        exp = exp.shrunk(steps=args.steps, seeds=args.seeds, rows=rows)
+        out = pathlib.Path(args.out or pathlib.Path("runs") / "reproduce" / exp.name)
+        runner.check_out_dir(exp, out)
+        if args.print_plan:
+            for row in exp.rows:
+                state = runner.row_state(out / row.name)
+                cmd = " ".join(["tgrf-sweep"] + spec_lib.sweep_args(exp, row) + ["--out", str(out / row.name)])
+                print(f"{row.name} [{state}]: {cmd}")
+            return 0
+        if args.report_only:
+            for path in report.write(exp, out):
+                print(path)
+            return 0
+        return runner.reproduce(exp, out)
+    except ConfigError as e:
+        print(f"tgrf-reproduce: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("tgrf-reproduce: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

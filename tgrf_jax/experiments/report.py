@@ -1,0 +1,201 @@
+"""An experiment's report from its rows' sweep results: Markdown and CSV, our value beside the paper's.
+
+Per row and compared value (e.g. reward scheme): the success rate as mean ± sample std over the seeds, and the
+best seed's (highest SR) SR, NT, PL and both ITRs, as the paper's tables report them. Rows still running show
+'…'. The figures tgrf-sweep draws (heat maps, curves) are copied next to the report.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import pathlib
+import shutil
+
+import numpy as np
+
+from tgrf_jax.experiments.spec import Experiment, Row
+
+REPORT_MD = "report.md"
+REPORT_CSV = "report.csv"
+CSV_FIELDS = ("experiment", "row", "label", "axis", "value", "seeds", "sr_mean", "sr_std", "best_seed", "sr",
+              "nt", "pl", "itr", "itr_disc", "paper_sr_mean", "paper_sr_std", "paper_sr", "paper_nt", "paper_pl",
+              "paper_itr", "row_wall_s", "commit")
+_FIGURES = ("heatmap.png", "grid_metrics.png", "learning_curves.png", "eval_curves.png")
+
+
+def _float(x) -> float:
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def read_evals(row_dir: pathlib.Path) -> list[dict]:
+    path = row_dir / "evals.csv"
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def cell(runs: list[dict]) -> dict:
+    """SR mean ± std over seeds (in %) and the best seed's metrics, from one grid point's evals.csv rows."""
+    if not runs:
+        return {}
+    sr = np.array([_float(r["success_rate"]) * 100.0 for r in runs])
+    best = runs[int(np.nanargmax(sr))] if np.isfinite(sr).any() else runs[0]
+    return {
+        "seeds": len(runs),
+        "sr_mean": float(np.nanmean(sr)),
+        "sr_std": float(np.nanstd(sr, ddof=1)) if len(runs) > 1 else math.nan,
+        "best_seed": int(best["seed"]),
+        "sr": _float(best["success_rate"]) * 100.0,
+        "nt": _float(best["nav_time"]),
+        "pl": _float(best["path_length"]),
+        "itr": _float(best["itr_future"]),
+        "itr_disc": _float(best["itr_disc"]),
+    }
+
+
+def _provenance(row_dir: pathlib.Path) -> dict:
+    path = row_dir / "provenance.json"
+    if not path.is_file():
+        return {}
+    prov = json.loads(path.read_text())
+    last = prov["invocations"][-1] if prov.get("invocations") else {}
+    return {"row_wall_s": prov.get("wall_s"), "commit": last.get("commit"), "machine": last.get("machine"),
+            "finished": last.get("finished")}
+
+
+def collect(exp: Experiment, out: pathlib.Path) -> list[dict]:
+    """One record per (row, value of the compared axis): ours, the paper's, and the row's provenance."""
+    axis = exp.column_axis
+    records = []
+    for row in exp.rows:
+        runs = read_evals(out / row.name)
+        prov = _provenance(out / row.name) if runs else {}
+        for value in row.grid[0][1]:
+            ours = cell([r for r in runs if r.get(axis) == str(value)])
+            paper = row.paper.get(str(value), {})
+            rec = {"experiment": exp.name, "row": row.name, "label": row.label, "axis": axis, "value": str(value),
+                   **ours, **{f"paper_{k}": v for k, v in paper.items()}}
+            rec.update({k: prov.get(k) for k in ("row_wall_s", "commit")})
+            rec["_machine"], rec["_finished"] = prov.get("machine"), prov.get("finished")
+            records.append(rec)
+    return records
+
+
+def _num(x, fmt="{:.2f}") -> str:
+    return "…" if x is None or (isinstance(x, float) and math.isnan(x)) else fmt.format(x)
+
+
+def _pair(ours: str, paper: str | None) -> str:
+    return ours if paper is None else f"{ours} ({paper})"
+
+
+def format_table(exp: Experiment, records: list[dict]) -> str:
+    """The paper's layout: one block per compared value, one line per row; cells 'ours (paper)'."""
+    lines = ["| reward | navigation method | SR mean ± std (%) | SR (%) | NT (s) | PL (m) | ITR (%) | ITR disc (%) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for value in exp.column_values:
+        first = True
+        for rec in (r for r in records if r["value"] == str(value)):
+            has_paper = "paper_sr" in rec
+            pp = (lambda k, fmt="{:.2f}": _num(rec.get(f"paper_{k}"), fmt) if has_paper else None)
+            sr_mean = "…" if "sr_mean" not in rec else (
+                f"{rec['sr_mean']:.1f}" + (f" ± {rec['sr_std']:.1f}" if not math.isnan(rec["sr_std"]) else ""))
+            paper_mean = (f"{rec['paper_sr_mean']:.1f} ± {rec['paper_sr_std']:.1f}"
+                          if has_paper and "paper_sr_mean" in rec else ("–" if has_paper else None))
+            lines.append("| " + " | ".join([
+                exp.column_label(value) if first else "",
+                rec["label"],
+                _pair(sr_mean, paper_mean),
+                _pair(_num(rec.get("sr"), "{:.1f}"), pp("sr", "{:.1f}")),
+                _pair(_num(rec.get("nt")), pp("nt")),
+                _pair(_num(rec.get("pl")), pp("pl")),
+                _pair(_num(rec.get("itr")), pp("itr")),
+                _num(rec.get("itr_disc")),
+            ]) + " |")
+            first = False
+    return "\n".join(lines)
+
+
+def _grid_points(exp: Experiment, row: Row, out: pathlib.Path) -> str:
+    """Mean ± std over seeds of SR and both ITRs for every grid point of a row (heat maps, curves)."""
+    runs = read_evals(out / row.name)
+    names = exp.grid_names
+    lines = ["| " + " | ".join(names) + " | seeds | SR (%) | ITR (%) | ITR disc (%) | NT (s) | PL (m) |",
+             "|" + "---|" * (len(names) + 6)]
+    groups: dict[tuple, list[dict]] = {}
+    for r in runs:
+        groups.setdefault(tuple(r[n] for n in names), []).append(r)
+
+    def ms(rs, key, scale=1.0):
+        x = np.array([_float(r[key]) * scale for r in rs])
+        x = x[np.isfinite(x)]
+        if not x.size:
+            return "–"
+        return f"{x.mean():.1f}" + (f" ± {x.std(ddof=1):.1f}" if x.size > 1 else "")
+
+    for key, rs in groups.items():
+        lines.append("| " + " | ".join(key) + f" | {len(rs)} | {ms(rs, 'success_rate', 100.0)} | "
+                     f"{ms(rs, 'itr_future')} | {ms(rs, 'itr_disc')} | {ms(rs, 'nav_time')} | {ms(rs, 'path_length')} |")
+    return "\n".join(lines) if groups else "(no finished runs yet)"
+
+
+def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> str:
+    done = sorted({r["row"] for r in records if "sr_mean" in r})
+    parts = [f"# {exp.title}", "",
+             f"Rows finished: {len(done)}/{len(exp.rows)}; {exp.seeds} seeds per cell; compared inside each row: "
+             f"`{exp.column_axis}` = {', '.join(map(str, exp.column_values))}."]
+    if exp.layout == "table":
+        parts += ["", "Each cell: ours (the paper's). SR mean ± sample std over seeds; SR, NT, PL and ITR of the best seed. "
+                  "ITR is the reference's itr_future; ITR disc is the share of steps with the nearest human closer "
+                  "than d_disc (ours only).", "", format_table(exp, records)]
+    else:
+        for row in exp.rows:
+            parts += ["", f"## {row.label}", "", _grid_points(exp, row, out)]
+            for fig in _FIGURES:
+                if (out / f"{row.name}_{fig}").is_file():
+                    parts += ["", f"![{row.label}: {fig}]({row.name}_{fig})"]
+    prov = [r for r in records if r.get("commit")]
+    if prov:
+        parts += ["", "| row | wall time | commit | machine | finished |", "|---|---|---|---|---|"]
+        seen = set()
+        for r in prov:
+            if r["row"] in seen:
+                continue
+            seen.add(r["row"])
+            wall = r["row_wall_s"] or 0.0
+            parts.append(f"| {r['row']} | {wall / 60:.1f} min | {r['commit']} | {r['_machine']} | {r['_finished']} |")
+    if exp.notes:
+        parts += ["", exp.notes.strip()]
+    return "\n".join(parts) + "\n"
+
+
+def _write_atomic(path: pathlib.Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write(exp: Experiment, out) -> list[pathlib.Path]:
+    """report.md and report.csv in `out` (and the rows' figures); returns the written paths."""
+    out = pathlib.Path(out)
+    for row in exp.rows:
+        for fig in _FIGURES:
+            src = out / row.name / fig
+            if src.is_file():
+                shutil.copyfile(src, out / f"{row.name}_{fig}")
+    records = collect(exp, out)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, extrasaction="ignore")
+    w.writeheader()
+    w.writerows(records)
+    _write_atomic(out / REPORT_CSV, buf.getvalue())
+    _write_atomic(out / REPORT_MD, format_report(exp, out, records))
+    return [out / REPORT_MD, out / REPORT_CSV]

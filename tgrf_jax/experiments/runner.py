@@ -1,0 +1,172 @@
+"""Run an experiment row by row as tgrf-sweep processes, resumably, and keep its report up to date.
+
+Each row lives in `<out>/<row>/`, a plain tgrf-sweep directory. A row is finished when its `evals.csv` exists;
+a row with a checkpoint resumes from it; a row stopped before its first checkpoint starts again (nothing of it
+was kept). So the command can be stopped and restarted any number of times. Each sweep runs in a child
+process: a crash or an out-of-memory in one row leaves the others and the report intact.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import pathlib
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from typing import Callable
+
+import yaml
+
+from tgrf_jax.config import ConfigError
+from tgrf_jax.experiments import report
+from tgrf_jax.experiments.spec import Experiment, Row, sweep_args
+
+EXPERIMENT_FILE = "experiment.yaml"
+PROVENANCE_FILE = "provenance.json"
+LOG_FILE = "reproduce.log"
+
+
+def _write_atomic(path: pathlib.Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def source_commit() -> str:
+    """The git commit of the code that runs (with '+dirty' for uncommitted changes), or 'unknown'."""
+    root = pathlib.Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"], capture_output=True,
+                              text=True, timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {len(os.sched_getaffinity(0))} cores"
+
+
+def row_state(row_dir: pathlib.Path) -> str:
+    """'done', 'resumable', 'stale' (started, no checkpoint yet) or 'new'."""
+    if (row_dir / "evals.csv").is_file():
+        return "done"
+    if not (row_dir / "sweep.yaml").is_file():
+        return "new"
+    ckpts = row_dir / "checkpoints"
+    has_step = ckpts.is_dir() and any(p.name.isdigit() for p in ckpts.iterdir())
+    return "resumable" if has_step else "stale"
+
+
+def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
+    """The output directory holds this experiment (same rows, seeds and budget) or nothing yet."""
+    recorded = out / EXPERIMENT_FILE
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {str(out)!r} is a file, not a directory")
+    if recorded.is_file():
+        old = yaml.safe_load(recorded.read_text())
+        new = exp.to_dict()
+        old_rows = {r["name"]: r for r in old.get("rows", [])}
+        clash = [k for k in ("config", "seeds") if old.get(k) != new.get(k)]
+        clash += [f"row {r['name']}" for r in new["rows"] if r["name"] in old_rows and old_rows[r["name"]] != r]
+        if clash:
+            raise ConfigError(
+                f"{str(out)!r} holds results of this experiment with other settings ({', '.join(clash)} differ); "
+                "use another --out, or the same --steps/--seeds as before")
+
+
+def _record(exp: Experiment, out: pathlib.Path) -> None:
+    """experiment.yaml: the settings of every row run so far (rows of earlier --rows selections are kept)."""
+    recorded = out / EXPERIMENT_FILE
+    data = exp.to_dict()
+    if recorded.is_file():
+        old = yaml.safe_load(recorded.read_text())
+        names = {r["name"] for r in data["rows"]}
+        data["rows"] = [r for r in old.get("rows", []) if r["name"] not in names] + data["rows"]
+    _write_atomic(recorded, yaml.safe_dump(data, sort_keys=False))
+
+
+def _fmt_duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
+
+
+def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None]) -> int:
+    """Train (or resume) one row as a tgrf-sweep child process; returns its exit code."""
+    state = row_state(row_dir)
+    if state == "stale":
+        say(f"  {row.name}: stopped before its first checkpoint; starting it again")
+        shutil.rmtree(row_dir)
+    cmd = [sys.executable, "-m", "tgrf_jax.sweep"]
+    cmd += ["--resume", str(row_dir)] if state == "resumable" else sweep_args(exp, row) + ["--out", str(row_dir)]
+    prov_path = row_dir / PROVENANCE_FILE
+    prov = json.loads(prov_path.read_text()) if prov_path.is_file() else {"wall_s": 0.0, "invocations": []}
+    started = time.perf_counter()
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as proc:
+        for line in proc.stdout:
+            say(f"  {row.name} | {line.rstrip()}")
+        code = proc.wait()
+    if row_dir.is_dir():
+        prov["wall_s"] += time.perf_counter() - started
+        prov["invocations"].append({
+            "commit": source_commit(), "machine": machine(), "exit_code": code,
+            "finished": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+            "command": " ".join(["tgrf-sweep"] + cmd[3:]),
+        })
+        _write_atomic(prov_path, json.dumps(prov, indent=2))
+    return code
+
+
+def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print) -> int:
+    """Run every unfinished row of `exp` into `out`, rewriting the report after each row; returns an exit code."""
+    out = pathlib.Path(out)
+    check_out_dir(exp, out)
+    out.mkdir(parents=True, exist_ok=True)
+    _record(exp, out)
+    log_file = open(out / LOG_FILE, "a", buffering=1)
+
+    def say(message: str) -> None:
+        log(message)
+        log_file.write(message + "\n")
+
+    try:
+        states = {r.name: row_state(out / r.name) for r in exp.rows}
+        todo = [r for r in exp.rows if states[r.name] != "done"]
+        say(f"[{exp.name}] {exp.title}: {len(exp.rows)} rows x {len(exp.column_values)} "
+            f"{exp.column_axis} values x {exp.seeds} seeds; {len(exp.rows) - len(todo)} rows already done; "
+            f"results in {out}")
+        report.write(exp, out)
+        t0 = time.perf_counter()
+        for i, row in enumerate(todo):
+            done = len(exp.rows) - len(todo) + i
+            eta = ""
+            if i:
+                per_row = (time.perf_counter() - t0) / i
+                eta = f"; about {_fmt_duration(per_row * (len(todo) - i))} left"
+            say(f"[{exp.name}] row {done + 1}/{len(exp.rows)}: {row.label} ({row.name}), "
+                f"{states[row.name]}; {_fmt_duration(time.perf_counter() - t0)} elapsed{eta}")
+            code = run_row(exp, row, out / row.name, say)
+            if code != 0:
+                say(f"[{exp.name}] row {row.name} stopped (exit code {code}); rerun the same command to resume")
+                return 130 if code in (130, -2) else code
+            paths = report.write(exp, out)
+            say(f"[{exp.name}] row {row.name} done; report: {', '.join(str(p) for p in paths)}")
+        say(f"[{exp.name}] all {len(exp.rows)} rows done")
+        return 0
+    finally:
+        log_file.close()
