@@ -264,3 +264,18 @@ def test_terminal_step_is_never_a_future_intrusion():
     assert bool(term) and int(info_reach.outcome) == SUCCESS and not bool(info_reach.intrusion_future)
     assert np.isinf(float(info_reach.future_dist))
     assert not bool(term_near) and bool(info_near.intrusion_future) and float(info_near.future_dist) < 0.6
+
+
+@pytest.mark.parametrize("action, direction", [
+    ([1e30, -1e30], [1.0, -1.0]), ([3e38, 0.0], [1.0, 0.0]), ([np.inf, -np.inf], [1.0, -1.0]),
+    ([-np.inf, 5.0], [-1.0, 0.0]), ([np.nan, 2.0], [0.0, 1.0]), ([0.3, 0.4], [0.6, 0.8]),
+])
+def test_huge_and_non_finite_actions_keep_their_direction(action, direction):
+    env = make_env(num_humans=1, predictor="none")
+    params = env.default_params
+    state = hand_state([0.0, 0.0], [0.0, 9.0], [[5.0, 5.0]])
+    _, nxt, *_ = env.step_env(jax.random.key(0), state, jnp.asarray(action, jnp.float32), params)
+    vel = np.asarray(nxt.robot.vel)
+    direction = np.asarray(direction) / np.linalg.norm(direction)
+    expected_speed = min(1.0, float(np.linalg.norm(np.nan_to_num(np.asarray(action, np.float64), nan=0.0))))
+    np.testing.assert_allclose(vel, direction * expected_speed, atol=1e-6)

@@ -58,3 +58,17 @@ def test_bad_arguments():
         evaluate(make_env(num_humans=1), StraightPolicy(), jax.random.key(0), 0)
     with pytest.raises(ValueError, match="valid: straight, orca"):
         baseline("dwa")
+
+
+def test_episodes_run_in_bounded_batches_with_progress(monkeypatch):
+    import tgrf_jax.evaluate as ev
+
+    env = make_env(num_humans=2)
+    calls = []
+    monkeypatch.setattr(ev, "MAX_BATCH", 4)
+    batched = evaluate(env, StraightPolicy(), jax.random.key(3), 10, progress=lambda d, n: calls.append((d, n)))
+    assert calls == [(4, 10), (8, 10), (10, 10)] and batched.n_episodes == 10
+    explicit = evaluate(env, StraightPolicy(), jax.random.key(3), 10, batch_size=4)
+    assert batched == explicit
+    with pytest.raises(ValueError, match="batch_size = 0 must be >= 1"):
+        evaluate(env, StraightPolicy(), jax.random.key(3), 10, batch_size=0)

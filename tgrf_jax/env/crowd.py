@@ -52,14 +52,22 @@ def _as_reward_config(reward) -> RewardConfig:
 def move_robot(robot: Robot, action, params: EnvParams, kinematics: str) -> tuple[Robot, jnp.ndarray]:
     """Apply an action; returns the moved robot and the heading change (for the unicycle spin penalty).
 
-    Non-finite actions are sanitised first (NaN -> 0, +-inf -> large), so no action can corrupt the state.
-    Holonomic: action = (vx, vy), rescaled to norm <= v_max. Unicycle: action = (dv, dtheta), each clipped
-    to its per-step limit, speed clipped to [-v_max, v_max].
+    Non-finite actions are sanitised first (NaN -> 0, +-inf -> the largest float), so no action can corrupt
+    the state. Holonomic: action = (vx, vy), rescaled to norm <= v_max, keeping its direction however large
+    it is. Unicycle: action = (dv, dtheta), each clipped to its per-step limit, speed clipped to [-v_max, v_max].
     """
-    action = jnp.nan_to_num(jnp.asarray(action, jnp.float32), nan=0.0, posinf=1e6, neginf=-1e6)
+    action = jnp.nan_to_num(jnp.asarray(action, jnp.float32), nan=0.0)
     if kinematics == "holonomic":
         speed = jnp.linalg.norm(action)
         vel = action * jnp.minimum(1.0, params.robot_v_max / jnp.maximum(speed, 1e-12))
+        # The norm of (1e30, 1e30) overflows float32: such actions are scaled by their largest component first
+        # (infinite components become the direction), so the robot still moves at v_max their way.
+        # (Pre-scaled by 2^-64: XLA flushes 1 / 3e38, a subnormal, to zero.)
+        shrunk = action * jnp.float32(2.0**-64)
+        scale = jnp.max(jnp.abs(shrunk))
+        unit = jnp.where(jnp.isinf(scale), jnp.sign(action) * jnp.isinf(action), shrunk / scale)
+        huge = unit * (params.robot_v_max / jnp.linalg.norm(unit))
+        vel = jnp.where(jnp.isfinite(speed), vel, huge)
         moved = robot.replace(pos=robot.pos + vel * params.dt, vel=vel)
         return moved, jnp.zeros(())
     dv = jnp.clip(action[0], params.unicycle_dv_min, params.unicycle_dv_max)
