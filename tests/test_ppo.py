@@ -9,7 +9,8 @@ from tgrf_jax.config import ConfigError, TrainConfig
 from tgrf_jax.env import SUCCESS
 from tgrf_jax.evaluate import evaluate
 from tgrf_jax.train import compute_gae, make_train
-from tgrf_jax.train.loop import chunk_plan, params_digest
+from tgrf_jax.train.loop import params_digest
+from tgrf_jax.train.runner import chunk_plan
 from tgrf_jax.train.policy import LearnedPolicy
 
 

@@ -1,7 +1,11 @@
 """Validated configuration dataclasses, loading from dicts / YAML, and `--set a.b=value` overrides.
 
-Every field declares its allowed values next to its default (`spec(...)`), so an invalid value is reported
-with the field's dotted name and the allowed range before anything is traced or compiled.
+Every parameter is declared once, as a field of a config dataclass: its default, its allowed values and whether
+it is *traced* (`traced(...)`: a numeric leaf of the `EnvParams` / `HParams` pytrees, vmappable and griddable)
+or *static* (`spec(...)`: shapes and code paths, fixed at compilation). `traced_pytree` derives the pytrees from
+these declarations, and `griddable_fields` lists the traced fields, so adding a parameter is one line here.
+An invalid value is reported with the field's dotted name and the allowed range before anything is traced or
+compiled.
 """
 
 from __future__ import annotations
@@ -21,15 +25,47 @@ class ConfigError(ValueError):
     """A configuration value or key is invalid; the message names the field and what is allowed."""
 
 
-def spec(default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc=""):
-    """A dataclass field with its allowed range or choices."""
+def spec(default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc="",
+         traced=False):
+    """A static dataclass field with its allowed range or choices (`traced=True`: see `traced`)."""
     return dataclasses.field(
         default=default,
         metadata=dict(
             low=low, high=high, low_inclusive=low_inclusive, high_inclusive=high_inclusive,
-            choices=choices, doc=doc,
+            choices=choices, doc=doc, traced=traced,
         ),
     )
+
+
+def traced(default, **kwargs):
+    """A numeric field that becomes a float32 leaf of the traced parameter pytree of its section."""
+    return spec(default, traced=True, **kwargs)
+
+
+def traced_names(cls) -> tuple[str, ...]:
+    """The traced fields of a config dataclass, in declaration order."""
+    return tuple(f.name for f in dataclasses.fields(cls) if f.metadata.get("traced"))
+
+
+def traced_pytree(name: str, config_cls, *, first=(), last=(), base=None, module=None, doc=None):
+    """A `flax.struct.dataclass` with one array leaf per traced field of `config_cls`, between the extra
+    `(name, type)` fields `first` and `last`; `base` (a plain class) contributes properties and methods."""
+    import jax.numpy as jnp
+    from flax import struct
+
+    annotations = dict(first)
+    annotations.update({n: jnp.ndarray for n in traced_names(config_cls)})
+    annotations.update(dict(last))
+    namespace = {"__annotations__": annotations, "__module__": module or __name__, "__qualname__": name,
+                 "__doc__": doc}
+    return struct.dataclass(type(name, (base,) if base else (), namespace))
+
+
+def traced_values(config) -> dict:
+    """{name: float32 array} of the traced fields of a config instance."""
+    import jax.numpy as jnp
+
+    return {n: jnp.asarray(getattr(config, n), jnp.float32) for n in traced_names(type(config))}
 
 
 def describe_allowed(meta: Mapping[str, Any]) -> str:
@@ -154,6 +190,33 @@ def load_yaml(path) -> dict:
     return data
 
 
+def parse_scalar(raw: str):
+    """A command-line value as YAML reads it (1 -> int, 1e-3 -> float, true -> bool); unparsable text as is."""
+    if not raw.strip():
+        return raw
+    try:
+        return yaml.safe_load(raw)
+    except yaml.YAMLError:
+        return raw.strip()
+
+
+def set_dotted(data: dict, dotted: str, value) -> dict:
+    """A copy of the nested dict `data` with `section.field` set to `value`."""
+    import copy
+
+    data = copy.deepcopy(data)
+    keys = dotted.strip().split(".")
+    node = data
+    for k in keys[:-1]:
+        if node.get(k) is None:
+            node[k] = {}
+        node = node[k]
+        if not isinstance(node, dict):
+            raise ConfigError(f"{dotted}: {k!r} is not a section")
+    node[keys[-1]] = value
+    return data
+
+
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
     """Apply `a.b.c=value` overrides (values parsed as YAML scalars) to a nested dict, returning a copy."""
     import copy
@@ -163,13 +226,10 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
         if "=" not in item:
             raise ConfigError(f"override {item!r} must look like section.field=value")
         dotted, raw = item.split("=", 1)
-        keys = dotted.strip().split(".")
-        node = data
-        for k in keys[:-1]:
-            node = node.setdefault(k, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"override {item!r}: {k!r} is not a section")
-        node[keys[-1]] = yaml.safe_load(raw) if raw.strip() else raw
+        try:
+            data = set_dotted(data, dotted, parse_scalar(raw))
+        except ConfigError as e:
+            raise ConfigError(f"override {item!r}: {e}") from None
     return data
 
 
@@ -189,19 +249,19 @@ class RewardConfig:
     """
 
     scheme: str = spec("tgrf", choices=reward_lib.SCHEMES)
-    r_goal: float | None = spec(None, low=0.0, doc="reward for reaching the goal")
-    r_col: float | None = spec(None, high=0.0, doc="reward (penalty) for a collision")
-    d_disc: float | None = spec(None, low=0.0, doc="danger-zone radius, edge-to-edge metres")
-    h_disc: float | None = spec(None, low=0.0, doc="TGRF peak of the danger penalty (absolute)")
-    sigma_disc: float | None = spec(None, low=0.0, low_inclusive=False, doc="TGRF width of the danger penalty")
-    disc_slope: float | None = spec(None, low=0.0, doc="linear danger penalty slope (CrowdNav++: 2.5)")
-    pot_factor: float | None = spec(None, low=0.0, doc="progress reward per metre towards the goal")
-    sigma_pot: float | None = spec(None, low=0.0, low_inclusive=False, doc="TGRF width of r_pot")
-    pred_penalty: float | None = spec(None, high=0.0, doc="r_col used by r_pred (0 disables r_pred)")
-    pred_c: float | None = spec(None, low=0.0, doc="r_pred exponent offset: penalty / 2^(k + c)")
-    pred_radius: float | None = spec(None, low=0.0, doc="centre distance counted as inside a prediction")
-    spin_coef: float | None = spec(None, low=0.0, doc="unicycle: penalty per rad^2 of heading change")
-    back_coef: float | None = spec(None, low=0.0, doc="unicycle: penalty per m/s of backwards speed")
+    r_goal: float | None = traced(None, low=0.0, doc="reward for reaching the goal")
+    r_col: float | None = traced(None, high=0.0, doc="reward (penalty) for a collision")
+    d_disc: float | None = traced(None, low=0.0, doc="danger-zone radius, edge-to-edge metres")
+    h_disc: float | None = traced(None, low=0.0, doc="TGRF peak of the danger penalty (absolute)")
+    sigma_disc: float | None = traced(None, low=0.0, low_inclusive=False, doc="TGRF width of the danger penalty")
+    disc_slope: float | None = traced(None, low=0.0, doc="linear danger penalty slope (CrowdNav++: 2.5)")
+    pot_factor: float | None = traced(None, low=0.0, doc="progress reward per metre towards the goal")
+    sigma_pot: float | None = traced(None, low=0.0, low_inclusive=False, doc="TGRF width of r_pot")
+    pred_penalty: float | None = traced(None, high=0.0, doc="r_col used by r_pred (0 disables r_pred)")
+    pred_c: float | None = traced(None, low=0.0, doc="r_pred exponent offset: penalty / 2^(k + c)")
+    pred_radius: float | None = traced(None, low=0.0, doc="centre distance counted as inside a prediction")
+    spin_coef: float | None = traced(None, low=0.0, doc="unicycle: penalty per rad^2 of heading change")
+    back_coef: float | None = traced(None, low=0.0, doc="unicycle: penalty per m/s of backwards speed")
 
     def __post_init__(self):
         if self.scheme not in reward_lib.SCHEMES:
@@ -269,33 +329,33 @@ class EnvConfig:
     orca_max_neighbors: int = spec(-1, low=-1, high=MAX_HUMANS, doc="-1: all other humans")
 
     # --- numeric (traced) --------------------------------------------------------------------------
-    dt: float = spec(0.25, low=0.0, high=1.0, low_inclusive=False)
-    time_limit: float = spec(50.0, low=0.0, low_inclusive=False, doc="seconds; reaching it truncates")
-    arena_size: float = spec(6.0, low=0.0, low_inclusive=False, doc="robot start/goal ~ U(-a, a)^2")
-    min_start_goal_dist: float = spec(8.0, low=0.0)
-    circle_radius: float = spec(6.0 * math.sqrt(2.0), low=0.0, low_inclusive=False)
-    spawn_noise: float = spec(2.0, low=0.0, doc="one-sided U(0, noise) added to spawn coordinates")
-    spawn_clearance: float = spec(0.5, low=0.0, doc="extra gap between spawned agents")
-    robot_radius: float = spec(0.3, low=0.0, low_inclusive=False)
-    robot_v_max: float = spec(1.0, low=0.0, low_inclusive=False)
-    goal_tolerance: float = spec(0.3, low=0.0, low_inclusive=False, doc="goal reached within this distance")
-    human_radius_min: float = spec(0.3, low=0.0, low_inclusive=False)
-    human_radius_max: float = spec(0.5, low=0.0, low_inclusive=False)
-    human_v_pref_min: float = spec(0.5, low=0.0, low_inclusive=False)
-    human_v_pref_max: float = spec(1.5, low=0.0, low_inclusive=False)
-    sensor_range: float = spec(5.0, low=0.0, doc="edge-to-edge metres")
-    goal_change_interval: float = spec(5.0, low=0.0, low_inclusive=False, doc="seconds")
-    goal_change_prob: float = spec(0.5, low=0.0, high=1.0)
-    intrusion_radius: float = spec(0.6, low=0.0, doc="itr_future: centre distance to a true future position")
-    orca_time_horizon: float = spec(5.0, low=0.0, low_inclusive=False)
-    orca_neighbor_dist: float = spec(10.0, low=0.0, low_inclusive=False)
-    orca_safety_space: float = spec(0.15, low=0.0)
-    sf_a: float = spec(2.0, low=0.0)
-    sf_b: float = spec(1.0, low=0.0, low_inclusive=False)
-    sf_ki: float = spec(1.0, low=0.0)
-    unicycle_dv_min: float = spec(-0.1, high=0.0)
-    unicycle_dv_max: float = spec(0.087, low=0.0)
-    unicycle_dtheta_max: float = spec(0.06, low=0.0)
+    dt: float = traced(0.25, low=0.0, high=1.0, low_inclusive=False)
+    time_limit: float = traced(50.0, low=0.0, low_inclusive=False, doc="seconds; reaching it truncates")
+    arena_size: float = traced(6.0, low=0.0, low_inclusive=False, doc="robot start/goal ~ U(-a, a)^2")
+    min_start_goal_dist: float = traced(8.0, low=0.0)
+    circle_radius: float = traced(6.0 * math.sqrt(2.0), low=0.0, low_inclusive=False)
+    spawn_noise: float = traced(2.0, low=0.0, doc="one-sided U(0, noise) added to spawn coordinates")
+    spawn_clearance: float = traced(0.5, low=0.0, doc="extra gap between spawned agents")
+    robot_radius: float = traced(0.3, low=0.0, low_inclusive=False)
+    robot_v_max: float = traced(1.0, low=0.0, low_inclusive=False)
+    goal_tolerance: float = traced(0.3, low=0.0, low_inclusive=False, doc="goal reached within this distance")
+    human_radius_min: float = traced(0.3, low=0.0, low_inclusive=False)
+    human_radius_max: float = traced(0.5, low=0.0, low_inclusive=False)
+    human_v_pref_min: float = traced(0.5, low=0.0, low_inclusive=False)
+    human_v_pref_max: float = traced(1.5, low=0.0, low_inclusive=False)
+    sensor_range: float = traced(5.0, low=0.0, doc="edge-to-edge metres")
+    goal_change_interval: float = traced(5.0, low=0.0, low_inclusive=False, doc="seconds")
+    goal_change_prob: float = traced(0.5, low=0.0, high=1.0)
+    intrusion_radius: float = traced(0.6, low=0.0, doc="itr_future: centre distance to a true future position")
+    orca_time_horizon: float = traced(5.0, low=0.0, low_inclusive=False)
+    orca_neighbor_dist: float = traced(10.0, low=0.0, low_inclusive=False)
+    orca_safety_space: float = traced(0.15, low=0.0)
+    sf_a: float = traced(2.0, low=0.0)
+    sf_b: float = traced(1.0, low=0.0, low_inclusive=False)
+    sf_ki: float = traced(1.0, low=0.0)
+    unicycle_dv_min: float = traced(-0.1, high=0.0)
+    unicycle_dv_max: float = traced(0.087, low=0.0)
+    unicycle_dtheta_max: float = traced(0.06, low=0.0)
 
     def __post_init__(self):
         check_fields(self, "env")
@@ -388,13 +448,13 @@ class PPOConfig:
     norm_value: bool = spec(True, doc="critic predicts returns standardised by running statistics (reference: off)")
     adam_eps: float = spec(1e-5, low=0.0, low_inclusive=False)
     # --- numeric (traced hyper-parameters)
-    lr: float = spec(6e-4, low=0.0, low_inclusive=False, high=1.0)
-    gamma: float = spec(0.99, low=0.0, high=1.0)
-    gae_lambda: float = spec(0.95, low=0.0, high=1.0)
-    clip_eps: float = spec(0.2, low=0.0, low_inclusive=False, high=10.0)
-    vf_coef: float = spec(0.5, low=0.0)
-    ent_coef: float = spec(0.0, low=0.0)
-    max_grad_norm: float = spec(0.5, low=0.0, low_inclusive=False)
+    lr: float = traced(6e-4, low=0.0, low_inclusive=False, high=1.0)
+    gamma: float = traced(0.99, low=0.0, high=1.0)
+    gae_lambda: float = traced(0.95, low=0.0, high=1.0)
+    clip_eps: float = traced(0.2, low=0.0, low_inclusive=False, high=10.0)
+    vf_coef: float = traced(0.5, low=0.0)
+    ent_coef: float = traced(0.0, low=0.0)
+    max_grad_norm: float = traced(0.5, low=0.0, low_inclusive=False)
 
     def __post_init__(self):
         check_fields(self, "ppo")
@@ -498,3 +558,16 @@ class TrainConfig:
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+def config_fields() -> list[str]:
+    """Every dotted field of a TrainConfig."""
+    return [f"{f.name}.{g.name}" for f in dataclasses.fields(TrainConfig)
+            for g in dataclasses.fields(type(f.default_factory()))]
+
+
+def griddable_fields() -> list[str]:
+    """Dotted fields that are traced (leaves of `HParams`), hence griddable: runs that differ only in these share
+    one compiled program. reward.scheme is one too: a scheme is only a set of reward values."""
+    return ([f"ppo.{n}" for n in traced_names(PPOConfig)] + [f"env.{n}" for n in traced_names(EnvConfig)]
+            + ["reward.scheme"] + [f"reward.{n}" for n in traced_names(RewardConfig)])
