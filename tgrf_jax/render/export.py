@@ -5,8 +5,6 @@ from __future__ import annotations
 import pathlib
 import shutil
 
-import numpy as np
-
 from tgrf_jax.render.draw import FramePainter, new_figure
 from tgrf_jax.render.record import Episode
 
