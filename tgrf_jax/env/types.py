@@ -5,7 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from tgrf_jax.config import EnvConfig, traced_pytree, traced_values
+from tgrf_jax.config import EnvConfig
+from tgrf_jax.fields import traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
 # Episode outcome codes carried in `Info.outcome`.

@@ -13,9 +13,8 @@ import functools
 import itertools
 import pathlib
 
-from tgrf_jax.config import (
-    ConfigError, TrainConfig, apply_overrides, config_fields, griddable_fields, load_yaml, parse_scalar, set_dotted,
-)
+from tgrf_jax.config import ConfigError, TrainConfig, config_fields, griddable_fields
+from tgrf_jax.fields import apply_overrides, load_yaml, parse_scalar, set_dotted
 
 SWEEP_FILE = "sweep.yaml"
 

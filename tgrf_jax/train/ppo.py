@@ -29,7 +29,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from tgrf_jax.config import PPOConfig, TrainConfig, traced_pytree, traced_values
+from tgrf_jax.config import PPOConfig, TrainConfig
+from tgrf_jax.fields import traced_pytree, traced_values
 from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams, EnvState, Obs
 from tgrf_jax.nets import ActorCritic, make_network
 from tgrf_jax.train import shards

@@ -48,12 +48,12 @@ class Program(Protocol):
     def describe(self, state) -> str: ...
 
 
-def chunk_plan(start: int, total: int, log_every: int, checkpoint_every: int) -> list[int]:
-    """Chunk lengths from update `start` to `total`: at most log_every, never crossing a checkpoint multiple."""
+def chunk_plan(start: int, total: int, log_every: int, *cut_every: int) -> list[int]:
+    """Chunk lengths from update `start` to `total`: at most log_every, never crossing a multiple of log_every or
+    of any `cut_every` period (checkpoints; a periodic evaluation would add its own)."""
     plan, u = [], start
     while u < total:
-        next_ckpt = (u // checkpoint_every + 1) * checkpoint_every
-        n = min(log_every - u % log_every, next_ckpt - u, total - u)
+        n = min([total - u] + [p - u % p for p in (log_every, *cut_every)])
         plan.append(n)
         u += n
     return plan
@@ -77,14 +77,16 @@ def train_runs(
     resume: bool = False,
     progress_fns: Sequence[Callable[[int, ChunkMetrics], None]] = (),
     state_fns: Sequence[Callable[[int, Any], None]] = (),
+    cut_every: Sequence[int] = (),
     run_dirs: Sequence[pathlib.Path] = (),
     say: Callable[[str], None] = print,
     stop_after_updates: int | None = None,
 ) -> RunnerResult:
     """Train (or, with `resume`, continue from the latest checkpoint) every run of `program` to its end.
 
-    `run_dirs` (one per run) receive the final evaluation as eval.json. `stop_after_updates` ends early, as an
-    interruption would (for tests)."""
+    Chunks end at multiples of `run.log_every`, `run.checkpoint_every` and every period in `cut_every` (where a
+    `state_fn` wants to see the state). `run_dirs` (one per run) receive the final evaluation as eval.json.
+    `stop_after_updates` ends early, as an interruption would (for tests)."""
     total, batch, G = program.num_updates, program.batch_size, program.num_runs
     start_time = time.perf_counter()
     if resume:
@@ -105,7 +107,7 @@ def train_runs(
 
     end = total if stop_after_updates is None else min(total, stop_after_updates)
     train_seconds, compiled, update = 0.0, 0, start
-    for n in chunk_plan(start, end, run.log_every, run.checkpoint_every):
+    for n in chunk_plan(start, end, run.log_every, run.checkpoint_every, *cut_every):
         fn, compile_s = program.compiled_chunk(state, n)
         if compile_s is not None:
             compiled += 1
