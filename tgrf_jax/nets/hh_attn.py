@@ -42,9 +42,8 @@ Presets (`HH_ATTN_SIZES`):
   `hh_out_projection`: linear maps in a row, no function lost), uses 16-wide queries and keys (`hh_qk_head_dim`)
   and a 32-wide first embedding layer, and attends to the 16 nearest visible humans (`max_humans`): on average 8
   of the 20 are visible and more than 16 in under 3% of the steps (sensor range 5 m). One gradient slice of
-  the PPO loss (16 envs x 15 steps) costs 429 MFLOP instead of 728 with the earlier 64-wide-everywhere `small`;
-  (docs/benchmarks.md). 69,925 params (D = 12, N = 20), 69,605 with
-  D = 2.
+  the PPO loss (16 envs x 15 steps) costs 429 MFLOP, against 728 with 64-wide layers throughout
+  (docs/benchmarks.md). 69,925 params (D = 12, N = 20), 69,605 with D = 2.
 """
 
 from __future__ import annotations
