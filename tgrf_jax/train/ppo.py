@@ -222,20 +222,16 @@ def clip_by_global_norm(grads, max_norm):
 
     Kept by hand rather than `optax.clip_by_global_norm`: optax rescales each leaf as `g / norm * max_norm`, this
     as `g * (max_norm / norm)`, and the float32 rounding difference would change every trained run's numbers."""
-    g_norm = optax.global_norm(grads)
+    g_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree_util.tree_leaves(grads)))
     scale = jnp.where(g_norm > max_norm, max_norm / jnp.maximum(g_norm, 1e-12), 1.0)
     return jax.tree_util.tree_map(lambda g: g * scale, grads), g_norm
 
 
-def make_optimizer(ppo: PPOConfig, lr, num_updates: int) -> optax.GradientTransformation:
-    """Adam whose learning rate is `lr` (traced), or with `ppo.anneal_lr` decays linearly to 0 over the run.
-
-    The rate is constant within an update: optax counts optimiser steps (epochs x minibatches per update), the
-    schedule is a function of the update index. The current rate is `opt_state.hyperparams["learning_rate"]`."""
-    per_update = optax.linear_schedule(lr, 0.0, num_updates) if ppo.anneal_lr else optax.constant_schedule(lr)
-    steps_per_update = ppo.update_epochs * ppo.num_minibatches
-    return optax.inject_hyperparams(optax.adam)(
-        learning_rate=lambda count: per_update(count // steps_per_update), eps=ppo.adam_eps)
+def learning_rate(ppo: PPOConfig, lr, update, num_updates: int):
+    """The learning rate of update `update`: `lr` (traced), or with `ppo.anneal_lr` decaying linearly to 0 over
+    the run (an optax schedule of the update index, so the rate is constant within an update)."""
+    schedule = optax.linear_schedule(lr, 0.0, num_updates) if ppo.anneal_lr else optax.constant_schedule(lr)
+    return schedule(update)
 
 
 # ---------------------------------------------------------------------------------------------------- trainer
@@ -327,7 +323,7 @@ class Trainer:
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(k_env, p.num_envs), hparams.env)
         return TrainState(
             params=params,
-            opt_state=self.optimizer(hparams).init(params),
+            opt_state=self.optimizer.init(params),
             env_state=env_state,
             obs=obs,
             carry=self.net.initialize_carry(p.num_envs),
@@ -339,8 +335,10 @@ class Trainer:
             hparams=hparams,
         )
 
-    def optimizer(self, hparams: HParams) -> optax.GradientTransformation:
-        return make_optimizer(self.config.ppo, hparams.lr, self.num_updates)
+    @property
+    def optimizer(self) -> optax.GradientTransformation:
+        """Adam's moment estimates; the step `-lr * update` is applied by `update` (the rate is traced)."""
+        return optax.scale_by_adam(eps=self.config.ppo.adam_eps)
 
     # --------------------------------------------------------------------------------------------- rollout
     def rollout(self, ts: TrainState, key):
@@ -410,7 +408,7 @@ class Trainer:
         return_stats = ts.return_stats.update(returns, self._mean) if p.norm_value else ts.return_stats
         value_stats = return_stats if p.norm_value else None
 
-        optimizer = self.optimizer(hp)
+        lr = learning_rate(p, hp.lr, ts.update, self.num_updates)
         # --- epochs x minibatches over envs (whole sequences)
         n_mb = p.num_minibatches
         loss_grad = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
@@ -442,8 +440,8 @@ class Trainer:
             params, opt_state = carry
             (loss, aux), grads = self._pmean(minibatch_grad(params, mb))
             grads, g_norm = clip_by_global_norm(grads, hp.max_grad_norm)
-            updates, opt_state = optimizer.update(grads, opt_state, params)
-            params = optax.apply_updates(params, updates)
+            updates, opt_state = self.optimizer.update(grads, opt_state, params)
+            params = optax.apply_updates(params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
             return (params, opt_state), dict(aux, loss=loss, grad_norm=g_norm)
 
         def epoch(carry, k):
@@ -464,7 +462,7 @@ class Trainer:
             epoch, (ts.params, ts.opt_state), jax.random.split(k_perm, p.update_epochs)
         )
         metrics = {k: jnp.mean(v) for k, v in losses.items()}
-        metrics.update(self._psum(ep), lr=opt_state.hyperparams["learning_rate"], reward_mean=self._mean(traj.reward))
+        metrics.update(self._psum(ep), lr=jnp.asarray(lr, jnp.float32), reward_mean=self._mean(traj.reward))
         ts = ts.replace(params=params, opt_state=opt_state, return_stats=return_stats, key=key,
                         update=ts.update + 1)
         return ts, metrics
