@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from benchmarks.common import machine_info, time_call, write_json
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax.policies import StraightPolicy
-from tgrf_jax.train import shards
+from tgrf_jax import configure_cpu
 
 ENV_AXIS = "envs"
 
@@ -158,7 +158,7 @@ def main(argv=None):
     parser.add_argument("--devices", type=int, default=len(os.sched_getaffinity(0)),
                         help="CPU devices for the sharded step_batch column (default: one per core; 1: skip it)")
     args = parser.parse_args(argv)
-    shards.request_cpu_devices(args.devices)  # before JAX touches its backend
+    configure_cpu(args.devices)  # before JAX touches its backend
     mesh = None
     if args.devices > 1 and len(jax.devices()) >= args.devices:
         mesh = jax.sharding.Mesh(jax.devices()[:args.devices], (ENV_AXIS,))

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import rvo2
 
-from tgrf_jax import orca
+from tgrf_jax import configure_cpu, orca
 
 SETTINGS = dict(time_horizon=5.0, dt=0.25, neighbor_dist=10.0)
 
@@ -143,6 +143,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats (< 1 minute)")
     parser.add_argument("--out", help="write the results as JSON to this file")
     args = parser.parse_args(argv)
+    configure_cpu()  # 512-bit vectors on AVX-512, as the command-line tools use
 
     if args.quick:
         cases = [(b, 20, k) for k in ("initial", "crossing") for b in (1, 16, 256)] + [(64, n, "initial")

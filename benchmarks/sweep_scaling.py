@@ -31,7 +31,9 @@ import jax
 from jax import monitoring
 
 from benchmarks.common import machine_info, write_json
+from tgrf_jax import configure_cpu
 from tgrf_jax import sweep as sweep_lib
+from tgrf_jax.sweep import program as sweep_program
 from tgrf_jax.config import TrainConfig, apply_overrides, load_yaml
 from tgrf_jax.train.loop import train_run
 
@@ -49,7 +51,7 @@ monitoring.register_event_duration_secs_listener(_listener)
 
 
 def _fresh():
-    sweep_lib._PROGRAMS.clear()
+    sweep_program._PROGRAMS.clear()
     jax.clear_caches()
     _compiles.clear()
 
@@ -67,7 +69,7 @@ def run_sweep_once(base: dict, g: int, workdir: pathlib.Path) -> dict:
     wall = time.perf_counter() - t0
     batch = spec.base_config.ppo.batch_size
     steps = g * res.updates * batch
-    program = next(iter(sweep_lib._PROGRAMS.values()))
+    program = next(iter(sweep_program._PROGRAMS.values()))
     return {"mode": "sweep", "G": g, "devices": res.num_devices, "wall_s": round(wall, 2),
             "train_s": round(res.train_seconds, 3), "env_steps": steps, "sps": round(steps / res.train_seconds, 1),
             "chunk_compiles": len(program.compiled), **_compile_stats()}
@@ -79,11 +81,10 @@ def run_sequential(base: dict, g: int, workdir: pathlib.Path) -> dict:
     train_s, steps, chunk_compiles = 0.0, 0, 0
     for seed in range(g):
         cfg = TrainConfig.from_dict(apply_overrides(base, [f"run.seed={seed}"]))
-        lines = []
-        res = train_run(cfg, workdir / f"seq_{g}_{seed}", log=lines.append)
+        res = train_run(cfg, workdir / f"seq_{g}_{seed}", log=lambda m: None)
         train_s += res.train_seconds
         steps += res.updates * cfg.ppo.batch_size
-        chunk_compiles += sum(line.startswith("compiled a ") for line in lines)
+        chunk_compiles += res.compiled_chunks
     wall = time.perf_counter() - t0
     return {"mode": "sequential", "G": g, "devices": 1, "wall_s": round(wall, 2), "train_s": round(train_s, 3),
             "env_steps": steps, "sps": round(steps / train_s, 1), "chunk_compiles": chunk_compiles,
@@ -100,6 +101,7 @@ def main(argv=None):
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--sizes", type=int, nargs="*", help="numbers of runs G (default: 1 4 16; quick: 1 16)")
     args = parser.parse_args(argv)
+    configure_cpu()  # 512-bit vectors on AVX-512, as the command-line tools use (XLA_FLAGS chooses devices)
     args.sizes = args.sizes or ([1, 16] if args.quick else [1, 4, 16])
 
     data = apply_overrides(load_yaml(args.config), ["run.eval_episodes=0", *args.overrides])

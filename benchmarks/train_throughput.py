@@ -27,6 +27,7 @@ import jax.numpy as jnp
 from benchmarks.common import machine_info, time_call, write_json
 from tgrf_jax.config import TrainConfig
 from tgrf_jax.nets.hh_attn import HH_ATTN_SIZES
+from tgrf_jax import configure_cpu
 from tgrf_jax.train import make_train, shards
 from tgrf_jax.train.ppo import Transition, ppo_loss
 
@@ -165,7 +166,7 @@ def main(argv=None):
     parser.add_argument("--microbatch-envs", type=int, default=default_ppo.microbatch_envs,
                         help="envs per gradient slice (default: the embedded default config's; 0: whole minibatch)")
     args = parser.parse_args(argv)
-    shards.request_cpu_devices(args.shards)  # before JAX touches its backend
+    configure_cpu(args.shards)  # before JAX touches its backend
     if args.quick:
         nets = args.nets or ["hh_attn/small"]
         envs = args.envs or [default_ppo.num_envs]

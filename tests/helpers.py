@@ -53,3 +53,33 @@ def rollout(env, key, params, n_steps, policy_fn):
 def to_goal(obs):
     offset = obs.robot_node[3:5] - obs.robot_node[:2]
     return offset / jnp.maximum(jnp.linalg.norm(offset), 1e-6)
+
+
+# jax.monitoring events: a function traced to a jaxpr, and a program compiled by XLA (cache misses of jit).
+TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+
+
+class CompileCounter:
+    """Counts jaxpr traces and XLA backend compilations while active (a context manager):
+
+        with CompileCounter() as c:
+            ...
+        assert c.compiles == 0
+    """
+
+    def __enter__(self):
+        self.traces = self.compiles = 0
+        jax.monitoring.register_event_duration_secs_listener(self._listener)
+        return self
+
+    def _listener(self, event: str, duration: float, **_):
+        if event == TRACE_EVENT:
+            self.traces += 1
+        elif event == COMPILE_EVENT:
+            self.compiles += 1
+
+    def __exit__(self, *exc):
+        jax.monitoring.unregister_event_duration_listener(self._listener)
+        return False
+

@@ -9,7 +9,7 @@ from tgrf_jax.config import ConfigError, TrainConfig
 from tgrf_jax.env import SUCCESS
 from tgrf_jax.evaluate import evaluate
 from tgrf_jax.train import compute_gae, make_train
-from tgrf_jax.train.loop import chunk_plan, params_digest
+from tgrf_jax.train.loop import params_digest
 from tgrf_jax.train.policy import LearnedPolicy
 
 
@@ -222,15 +222,6 @@ def test_train_is_vmappable_over_seeds_and_hparams():
     single, _ = t.run_chunk(single, 2)
     np.testing.assert_allclose(jax.tree_util.tree_leaves(states.params)[0][1],
                                jax.tree_util.tree_leaves(single.params)[0], rtol=1e-5, atol=1e-6)
-
-
-def test_chunk_plan_respects_checkpoints():
-    assert chunk_plan(0, 12, 5, 4) == [4, 1, 3, 2, 2]  # cut at log (5, 10) and checkpoint (4, 8, 12) multiples
-    assert chunk_plan(4, 12, 5, 4) == [1, 3, 2, 2]  # absolute boundaries: same chunks after a resume
-    assert sum(chunk_plan(3, 1000, 7, 50)) == 997
-
-
-# ---------------------------------------------------------------------------------------------- learning
 
 
 def test_learns_to_reach_goal_without_humans():

@@ -106,26 +106,6 @@ def test_shards_on_two_devices_match_shards_vmapped_on_one():
     np.testing.assert_allclose(mesh["loss"], vmap["loss"], rtol=1e-4, atol=1e-6)
 
 
-def test_cpu_devices_are_requested_only_before_jax_starts(monkeypatch):
-    monkeypatch.delenv("XLA_FLAGS", raising=False)
-    jax.devices()  # this process's backend exists: too late to add devices
-    assert shards.request_cpu_devices(2) is False
-    assert "XLA_FLAGS" not in os.environ
-    probe = ("import os; from tgrf_jax.train import shards; a = shards.request_cpu_devices(2); "
-             "b = shards.request_cpu_devices(2); import jax; print(a, b, len(jax.devices()), os.environ['XLA_FLAGS'])")
-    for flags, expected in (("", "True False 2 --xla_force_host_platform_device_count=2"),
-                            ("--xla_force_host_platform_device_count=3",
-                             "False False 3 --xla_force_host_platform_device_count=3")):
-        env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=flags)
-        out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=120)
-        assert out.returncode == 0, out.stderr
-        *result, xla_flags = out.stdout.strip().splitlines()[-1].split(" ", 3)
-        *wanted, wanted_flag = expected.split(" ", 3)
-        assert result == wanted
-        # importing tgrf_jax may add its code-generation flag (tgrf_jax.cpu_codegen) beside the device count
-        assert [f for f in xla_flags.split() if "device_count" in f] == [wanted_flag]
-
-
 def test_a_mesh_needs_one_device_per_shard():
     assert shards.shard_mesh(1) is None and shards.shard_mesh(2, None) is None
     if len(jax.local_devices()) < 2:

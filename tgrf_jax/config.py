@@ -1,177 +1,30 @@
-"""Validated configuration dataclasses, loading from dicts / YAML, and `--set a.b=value` overrides.
+"""The configuration of a run: environment, reward, PPO, network and run sections, each a validated dataclass.
 
-Every field declares its allowed values next to its default (`spec(...)`), so an invalid value is reported
-with the field's dotted name and the allowed range before anything is traced or compiled.
+Every parameter is declared once, as a field here: its default, its allowed values and whether it is *traced*
+(`traced(...)`: a numeric leaf of the `EnvParams` / `HParams` pytrees, vmappable and griddable) or *static*
+(`spec(...)`: shapes and code paths, fixed at compilation). `EnvParams`, `HParams` and `griddable_fields` are
+derived from these declarations, so adding a parameter is one line. An invalid value is reported with the
+field's dotted name and the allowed range before anything is traced or compiled (`tgrf_jax.fields`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
-import pathlib
 from typing import Any, Mapping
 
 import yaml
 
 from tgrf_jax import reward as reward_lib
+from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
+    ConfigError, _coerce, _unknown_key_error, apply_overrides, check_fields, from_dict, load_yaml, spec, traced,
+    traced_names,
+)
 
-
-class ConfigError(ValueError):
-    """A configuration value or key is invalid; the message names the field and what is allowed."""
-
-
-def spec(default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc=""):
-    """A dataclass field with its allowed range or choices."""
-    return dataclasses.field(
-        default=default,
-        metadata=dict(
-            low=low, high=high, low_inclusive=low_inclusive, high_inclusive=high_inclusive,
-            choices=choices, doc=doc,
-        ),
-    )
-
-
-def describe_allowed(meta: Mapping[str, Any]) -> str:
-    if meta.get("choices") is not None:
-        return "one of " + ", ".join(repr(c) for c in meta["choices"])
-    lo, hi = meta.get("low"), meta.get("high")
-    parts = []
-    if lo is not None:
-        parts.append(f"{'>=' if meta['low_inclusive'] else '>'} {lo}")
-    if hi is not None:
-        parts.append(f"{'<=' if meta['high_inclusive'] else '<'} {hi}")
-    return " and ".join(parts) if parts else "any value"
-
-
-def _coerce(value, default, name: str):
-    """Coerce a loaded value to the type of the field's default, rejecting lossy conversions."""
-    if isinstance(default, bool):
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no"):
-            return value.lower() in ("true", "1", "yes")
-        raise ConfigError(f"{name} = {value!r} must be a boolean (true/false)")
-    if isinstance(default, int):
-        if isinstance(value, bool):
-            raise ConfigError(f"{name} = {value!r} must be an integer")
-        if isinstance(value, str):
-            try:
-                value = float(value)
-            except ValueError:
-                raise ConfigError(f"{name} = {value!r} must be an integer") from None
-        if isinstance(value, float):
-            if not value.is_integer():
-                raise ConfigError(f"{name} = {value!r} must be an integer")
-            value = int(value)
-        if not isinstance(value, int):
-            raise ConfigError(f"{name} = {value!r} must be an integer")
-        return value
-    if isinstance(default, float):
-        if isinstance(value, bool):
-            raise ConfigError(f"{name} = {value!r} must be a number")
-        try:
-            return float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{name} = {value!r} must be a number") from None
-    if isinstance(default, str):
-        if not isinstance(value, str):
-            raise ConfigError(f"{name} = {value!r} must be a string")
-        return value
-    return value
-
-
-def check_fields(obj, prefix: str) -> None:
-    """Check every field of a config dataclass against its declared range/choices."""
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        name = f"{prefix}.{f.name}" if prefix else f.name
-        meta = f.metadata
-        if dataclasses.is_dataclass(value):
-            continue
-        if meta.get("choices") is not None:
-            if value not in meta["choices"]:
-                raise ConfigError(f"{name} = {value!r} is not allowed; allowed: {describe_allowed(meta)}")
-            continue
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ConfigError(f"{name} = {value!r} must be finite; allowed: {describe_allowed(meta)}")
-        lo, hi = meta.get("low"), meta.get("high")
-        too_low = lo is not None and (value < lo if meta["low_inclusive"] else value <= lo)
-        too_high = hi is not None and (value > hi if meta["high_inclusive"] else value >= hi)
-        if too_low or too_high:
-            raise ConfigError(f"{name} = {value!r} is out of range; allowed: {describe_allowed(meta)}")
-
-
-def _unknown_key_error(key: str, prefix: str, valid: list[str]) -> ConfigError:
-    name = f"{prefix}.{key}" if prefix else key
-    close = difflib.get_close_matches(key, valid, n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return ConfigError(f"unknown config key {name!r}{hint}; valid keys: {', '.join(valid)}")
-
-
-def from_dict(cls, data: Mapping[str, Any] | None, prefix: str = ""):
-    """Build a config dataclass from a (possibly nested, possibly partial) mapping, validating keys and types."""
-    data = dict(data or {})
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs = {}
-    for key, value in data.items():
-        if key not in fields:
-            raise _unknown_key_error(key, prefix, list(fields))
-        name = f"{prefix}.{key}" if prefix else key
-        default = fields[key].default
-        if default is dataclasses.MISSING and fields[key].default_factory is not dataclasses.MISSING:
-            default = fields[key].default_factory()
-        if dataclasses.is_dataclass(default):
-            if not isinstance(value, Mapping):
-                raise ConfigError(f"{name} must be a mapping of {type(default).__name__} fields")
-            kwargs[key] = from_dict(type(default), value, name)
-        else:
-            kwargs[key] = _coerce(value, default, name)
-    try:
-        return cls(**kwargs)
-    except ConfigError as e:
-        if prefix and not str(e).startswith(prefix):
-            raise ConfigError(f"{prefix}.{e}") from None
-        raise
-
-
-def to_dict(obj) -> dict:
-    return dataclasses.asdict(obj)
-
-
-def load_yaml(path) -> dict:
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {e}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"config file {str(path)!r} must hold a mapping at the top level")
-    return data
-
-
-def apply_overrides(data: dict, overrides: list[str]) -> dict:
-    """Apply `a.b.c=value` overrides (values parsed as YAML scalars) to a nested dict, returning a copy."""
-    import copy
-
-    data = copy.deepcopy(data)
-    for item in overrides:
-        if "=" not in item:
-            raise ConfigError(f"override {item!r} must look like section.field=value")
-        dotted, raw = item.split("=", 1)
-        keys = dotted.strip().split(".")
-        node = data
-        for k in keys[:-1]:
-            node = node.setdefault(k, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"override {item!r}: {k!r} is not a section")
-        node[keys[-1]] = yaml.safe_load(raw) if raw.strip() else raw
-    return data
-
+__all__ = [
+    "ConfigError", "EnvConfig", "NetworkConfig", "PPOConfig", "RewardConfig", "RunConfig", "TrainConfig",
+    "apply_overrides", "config_fields", "griddable_fields", "load_yaml", "reward_config_from_dict",
+]
 
 # --------------------------------------------------------------------------------------------------
 # Reward and environment configuration
@@ -189,19 +42,19 @@ class RewardConfig:
     """
 
     scheme: str = spec("tgrf", choices=reward_lib.SCHEMES)
-    r_goal: float | None = spec(None, low=0.0, doc="reward for reaching the goal")
-    r_col: float | None = spec(None, high=0.0, doc="reward (penalty) for a collision")
-    d_disc: float | None = spec(None, low=0.0, doc="danger-zone radius, edge-to-edge metres")
-    h_disc: float | None = spec(None, low=0.0, doc="TGRF peak of the danger penalty (absolute)")
-    sigma_disc: float | None = spec(None, low=0.0, low_inclusive=False, doc="TGRF width of the danger penalty")
-    disc_slope: float | None = spec(None, low=0.0, doc="linear danger penalty slope (CrowdNav++: 2.5)")
-    pot_factor: float | None = spec(None, low=0.0, doc="progress reward per metre towards the goal")
-    sigma_pot: float | None = spec(None, low=0.0, low_inclusive=False, doc="TGRF width of r_pot")
-    pred_penalty: float | None = spec(None, high=0.0, doc="r_col used by r_pred (0 disables r_pred)")
-    pred_c: float | None = spec(None, low=0.0, doc="r_pred exponent offset: penalty / 2^(k + c)")
-    pred_radius: float | None = spec(None, low=0.0, doc="centre distance counted as inside a prediction")
-    spin_coef: float | None = spec(None, low=0.0, doc="unicycle: penalty per rad^2 of heading change")
-    back_coef: float | None = spec(None, low=0.0, doc="unicycle: penalty per m/s of backwards speed")
+    r_goal: float | None = traced(None, low=0.0, doc="reward for reaching the goal")
+    r_col: float | None = traced(None, high=0.0, doc="reward (penalty) for a collision")
+    d_disc: float | None = traced(None, low=0.0, doc="danger-zone radius, edge-to-edge metres")
+    h_disc: float | None = traced(None, low=0.0, doc="TGRF peak of the danger penalty (absolute)")
+    sigma_disc: float | None = traced(None, low=0.0, low_inclusive=False, doc="TGRF width of the danger penalty")
+    disc_slope: float | None = traced(None, low=0.0, doc="linear danger penalty slope (CrowdNav++: 2.5)")
+    pot_factor: float | None = traced(None, low=0.0, doc="progress reward per metre towards the goal")
+    sigma_pot: float | None = traced(None, low=0.0, low_inclusive=False, doc="TGRF width of r_pot")
+    pred_penalty: float | None = traced(None, high=0.0, doc="r_col used by r_pred (0 disables r_pred)")
+    pred_c: float | None = traced(None, low=0.0, doc="r_pred exponent offset: penalty / 2^(k + c)")
+    pred_radius: float | None = traced(None, low=0.0, doc="centre distance counted as inside a prediction")
+    spin_coef: float | None = traced(None, low=0.0, doc="unicycle: penalty per rad^2 of heading change")
+    back_coef: float | None = traced(None, low=0.0, doc="unicycle: penalty per m/s of backwards speed")
 
     def __post_init__(self):
         if self.scheme not in reward_lib.SCHEMES:
@@ -269,36 +122,36 @@ class EnvConfig:
     orca_max_neighbors: int = spec(-1, low=-1, high=MAX_HUMANS, doc="-1: all other humans")
 
     # --- numeric (traced) --------------------------------------------------------------------------
-    dt: float = spec(0.25, low=0.0, high=1.0, low_inclusive=False)
-    time_limit: float = spec(50.0, low=0.0, low_inclusive=False, doc="seconds; reaching it truncates")
-    arena_size: float = spec(6.0, low=0.0, low_inclusive=False, doc="robot start/goal ~ U(-a, a)^2")
-    min_start_goal_dist: float = spec(8.0, low=0.0)
-    circle_radius: float = spec(6.0 * math.sqrt(2.0), low=0.0, low_inclusive=False)
-    spawn_noise: float = spec(2.0, low=0.0, doc="one-sided U(0, noise) added to spawn coordinates")
-    spawn_clearance: float = spec(0.5, low=0.0, doc="extra gap between spawned agents")
-    robot_radius: float = spec(0.3, low=0.0, low_inclusive=False)
-    robot_v_max: float = spec(1.0, low=0.0, low_inclusive=False)
-    goal_tolerance: float = spec(0.3, low=0.0, low_inclusive=False, doc="goal reached within this distance")
-    human_radius_min: float = spec(0.3, low=0.0, low_inclusive=False)
-    human_radius_max: float = spec(0.5, low=0.0, low_inclusive=False)
-    human_v_pref_min: float = spec(0.5, low=0.0, low_inclusive=False)
-    human_v_pref_max: float = spec(1.5, low=0.0, low_inclusive=False)
-    sensor_range: float = spec(5.0, low=0.0, doc="edge-to-edge metres")
-    goal_change_interval: float = spec(5.0, low=0.0, low_inclusive=False, doc="seconds")
-    goal_change_prob: float = spec(0.5, low=0.0, high=1.0)
-    intrusion_radius: float = spec(0.6, low=0.0, doc="itr_future: centre distance to a true future position")
-    orca_time_horizon: float = spec(5.0, low=0.0, low_inclusive=False)
-    orca_neighbor_dist_min: float = spec(
+    dt: float = traced(0.25, low=0.0, high=1.0, low_inclusive=False)
+    time_limit: float = traced(50.0, low=0.0, low_inclusive=False, doc="seconds; reaching it truncates")
+    arena_size: float = traced(6.0, low=0.0, low_inclusive=False, doc="robot start/goal ~ U(-a, a)^2")
+    min_start_goal_dist: float = traced(8.0, low=0.0)
+    circle_radius: float = traced(6.0 * math.sqrt(2.0), low=0.0, low_inclusive=False)
+    spawn_noise: float = traced(2.0, low=0.0, doc="one-sided U(0, noise) added to spawn coordinates")
+    spawn_clearance: float = traced(0.5, low=0.0, doc="extra gap between spawned agents")
+    robot_radius: float = traced(0.3, low=0.0, low_inclusive=False)
+    robot_v_max: float = traced(1.0, low=0.0, low_inclusive=False)
+    goal_tolerance: float = traced(0.3, low=0.0, low_inclusive=False, doc="goal reached within this distance")
+    human_radius_min: float = traced(0.3, low=0.0, low_inclusive=False)
+    human_radius_max: float = traced(0.5, low=0.0, low_inclusive=False)
+    human_v_pref_min: float = traced(0.5, low=0.0, low_inclusive=False)
+    human_v_pref_max: float = traced(1.5, low=0.0, low_inclusive=False)
+    sensor_range: float = traced(5.0, low=0.0, doc="edge-to-edge metres")
+    goal_change_interval: float = traced(5.0, low=0.0, low_inclusive=False, doc="seconds")
+    goal_change_prob: float = traced(0.5, low=0.0, high=1.0)
+    intrusion_radius: float = traced(0.6, low=0.0, doc="itr_future: centre distance to a true future position")
+    orca_time_horizon: float = traced(5.0, low=0.0, low_inclusive=False)
+    orca_neighbor_dist_min: float = traced(
         5.0, low=0.0, low_inclusive=False, doc="humans' ORCA neighbour distance ~ U(min, max), drawn per episode"
     )
-    orca_neighbor_dist_max: float = spec(10.0, low=0.0, low_inclusive=False, doc="min = max: a fixed distance")
-    orca_safety_space: float = spec(0.15, low=0.0)
-    sf_a: float = spec(2.0, low=0.0)
-    sf_b: float = spec(1.0, low=0.0, low_inclusive=False)
-    sf_ki: float = spec(1.0, low=0.0)
-    unicycle_dv_min: float = spec(-0.1, high=0.0)
-    unicycle_dv_max: float = spec(0.087, low=0.0)
-    unicycle_dtheta_max: float = spec(0.06, low=0.0)
+    orca_neighbor_dist_max: float = traced(10.0, low=0.0, low_inclusive=False, doc="min = max: a fixed distance")
+    orca_safety_space: float = traced(0.15, low=0.0)
+    sf_a: float = traced(2.0, low=0.0)
+    sf_b: float = traced(1.0, low=0.0, low_inclusive=False)
+    sf_ki: float = traced(1.0, low=0.0)
+    unicycle_dv_min: float = traced(-0.1, high=0.0)
+    unicycle_dv_max: float = traced(0.087, low=0.0)
+    unicycle_dtheta_max: float = traced(0.06, low=0.0)
 
     def __post_init__(self):
         check_fields(self, "env")
@@ -392,13 +245,13 @@ class PPOConfig:
     norm_value: bool = spec(True, doc="critic predicts returns standardised by running statistics (reference: off)")
     adam_eps: float = spec(1e-5, low=0.0, low_inclusive=False)
     # --- numeric (traced hyper-parameters)
-    lr: float = spec(6e-4, low=0.0, low_inclusive=False, high=1.0)
-    gamma: float = spec(0.99, low=0.0, high=1.0)
-    gae_lambda: float = spec(0.95, low=0.0, high=1.0)
-    clip_eps: float = spec(0.2, low=0.0, low_inclusive=False, high=10.0)
-    vf_coef: float = spec(0.5, low=0.0)
-    ent_coef: float = spec(0.0, low=0.0)
-    max_grad_norm: float = spec(0.5, low=0.0, low_inclusive=False)
+    lr: float = traced(6e-4, low=0.0, low_inclusive=False, high=1.0)
+    gamma: float = traced(0.99, low=0.0, high=1.0)
+    gae_lambda: float = traced(0.95, low=0.0, high=1.0)
+    clip_eps: float = traced(0.2, low=0.0, low_inclusive=False, high=10.0)
+    vf_coef: float = traced(0.5, low=0.0)
+    ent_coef: float = traced(0.0, low=0.0)
+    max_grad_norm: float = traced(0.5, low=0.0, low_inclusive=False)
 
     def __post_init__(self):
         check_fields(self, "ppo")
@@ -502,3 +355,16 @@ class TrainConfig:
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+def config_fields() -> list[str]:
+    """Every dotted field of a TrainConfig."""
+    return [f"{f.name}.{g.name}" for f in dataclasses.fields(TrainConfig)
+            for g in dataclasses.fields(type(f.default_factory()))]
+
+
+def griddable_fields() -> list[str]:
+    """Dotted fields that are traced (leaves of `HParams`), hence griddable: runs that differ only in these share
+    one compiled program. reward.scheme is one too: a scheme is only a set of reward values."""
+    return ([f"ppo.{n}" for n in traced_names(PPOConfig)] + [f"env.{n}" for n in traced_names(EnvConfig)]
+            + ["reward.scheme"] + [f"reward.{n}" for n in traced_names(RewardConfig)])

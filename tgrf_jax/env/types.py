@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax.numpy as jnp
 from flax import struct
 
 from tgrf_jax.config import EnvConfig
+from tgrf_jax.fields import traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
 # Episode outcome codes carried in `Info.outcome`.
@@ -15,43 +14,7 @@ RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
 OUTCOME_NAMES = ("running", "success", "collision", "timeout")
 
 
-@struct.dataclass
-class EnvParams:
-    """Every numeric setting of the environment (traced: vmap over any field for grids or randomisation).
-
-    Field meanings are documented on `EnvConfig`, which builds this with `CrowdNavEnv.default_params`.
-    """
-
-    dt: jnp.ndarray
-    time_limit: jnp.ndarray
-    arena_size: jnp.ndarray
-    min_start_goal_dist: jnp.ndarray
-    circle_radius: jnp.ndarray
-    spawn_noise: jnp.ndarray
-    spawn_clearance: jnp.ndarray
-    robot_radius: jnp.ndarray
-    robot_v_max: jnp.ndarray
-    goal_tolerance: jnp.ndarray
-    human_radius_min: jnp.ndarray
-    human_radius_max: jnp.ndarray
-    human_v_pref_min: jnp.ndarray
-    human_v_pref_max: jnp.ndarray
-    sensor_range: jnp.ndarray
-    goal_change_interval: jnp.ndarray
-    goal_change_prob: jnp.ndarray
-    intrusion_radius: jnp.ndarray
-    orca_time_horizon: jnp.ndarray
-    orca_neighbor_dist_min: jnp.ndarray
-    orca_neighbor_dist_max: jnp.ndarray
-    orca_safety_space: jnp.ndarray
-    sf_a: jnp.ndarray
-    sf_b: jnp.ndarray
-    sf_ki: jnp.ndarray
-    unicycle_dv_min: jnp.ndarray
-    unicycle_dv_max: jnp.ndarray
-    unicycle_dtheta_max: jnp.ndarray
-    reward: RewardParams
-
+class _EnvParamsMethods:
     @property
     def max_steps(self):
         return jnp.round(self.time_limit / self.dt).astype(jnp.int32)
@@ -62,12 +25,16 @@ class EnvParams:
 
     @classmethod
     def from_config(cls, config: EnvConfig, reward: RewardParams) -> "EnvParams":
-        numeric = {
-            f.name: jnp.asarray(getattr(config, f.name), jnp.float32)
-            for f in dataclasses.fields(cls)
-            if f.name != "reward"
-        }
-        return cls(**numeric, reward=reward)
+        return cls(**traced_values(config), reward=reward)
+
+
+EnvParams = traced_pytree(
+    "EnvParams", EnvConfig, last=(("reward", RewardParams),), base=_EnvParamsMethods, module=__name__,
+    doc="""Every numeric setting of the environment (traced: vmap over any field for grids or randomisation).
+
+    One float32 leaf per traced field of `EnvConfig` (where each is declared and documented), plus the reward
+    parameters; `CrowdNavEnv.default_params` builds it from a config.""",
+)
 
 
 @struct.dataclass

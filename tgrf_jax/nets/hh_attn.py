@@ -33,18 +33,17 @@ Presets (`HH_ATTN_SIZES`):
 * ``small``: R = F = O = head hidden = 64, self-attention A = 64 wide with 2 heads (Eh = 32; queries and keys
   16 wide per head, values 32), a = 32, e = 32, GRU 64. Reasoning: the paper net spends 1.9 M of its 2.5 M
   parameters and almost all of its FLOPs in the 512-wide self-attention (four 512x512 projections per human per
-  step); shrinking it to 64 wide makes a step ~37x cheaper (jitted CPU forward, B = 256, N = 20: 171 ms -> 4.6 ms)
-  so many parallel envs can be stepped on 2 CPU cores, while keeping every architectural element (both
-  attentions, masks, GRU memory, separate actor / critic trunks). 64 hidden units and a 64-unit GRU are the usual
-  sizes for small continuous-control PPO policies. Since PPO's epochs dominate training time on a CPU and almost
+  step); shrinking it to 64 wide makes a step about 37x cheaper on a CPU, so many parallel envs can be stepped
+  on 2 CPU cores, while keeping every architectural element (both attentions, masks, GRU memory, separate
+  actor / critic trunks). 64 hidden units and a 64-unit GRU are the usual sizes for small continuous-control PPO
+  policies. Since PPO's epochs dominate training time on a CPU and almost
   all of their arithmetic is per human row, `small` trims that path: it feeds the embedding straight into the
   attention's own in-projection and the heads straight into `spatial_linear` (`qkv_pre_projection`,
   `hh_out_projection`: linear maps in a row, no function lost), uses 16-wide queries and keys (`hh_qk_head_dim`)
   and a 32-wide first embedding layer, and attends to the 16 nearest visible humans (`max_humans`): on average 8
   of the 20 are visible and more than 16 in under 3% of the steps (sensor range 5 m). One gradient slice of
-  the PPO loss (16 envs x 15 steps) costs 429 MFLOP instead of 728 with the earlier 64-wide-everywhere `small`;
-  its training ran 39% faster at the same epochs (see the README). 69,925 params (D = 12, N = 20), 69,605 with
-  D = 2.
+  the PPO loss (16 envs x 15 steps) costs 429 MFLOP, against 728 with 64-wide layers throughout
+  (docs/benchmarks.md). 69,925 params (D = 12, N = 20), 69,605 with D = 2.
 """
 
 from __future__ import annotations

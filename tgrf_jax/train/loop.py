@@ -1,4 +1,4 @@
-"""The chunked outer loop of a training run: progress, CSV / TensorBoard, checkpoints, resume, final evaluation.
+"""A tgrf-train run directory: one run trained by the runner (`tgrf_jax.train.runner`), restored, evaluated.
 
 Run directory:
     config.yaml          resolved TrainConfig (every field, after overrides)
@@ -8,19 +8,12 @@ Run directory:
     tb/                  TensorBoard events (only if tensorboardX or torch.utils.tensorboard is installed)
     eval.json            final evaluation (SPEC A.4 metrics) of the deterministic policy
     learning_curve.png
-
-Chunk boundaries depend only on absolute update counts (every `run.log_every` updates, cut at checkpoint
-multiples and at the end), so a resumed run executes exactly the same chunks as an uninterrupted one and ends
-with bit-identical parameters.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import datetime
-import json
-import math
 import pathlib
 import time
 from typing import Callable
@@ -29,20 +22,20 @@ import jax
 import numpy as np
 
 from tgrf_jax.config import ConfigError, TrainConfig, load_yaml
-from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
 from tgrf_jax.train import shards
-from tgrf_jax.train.ppo import METRIC_NAMES, TrainState, make_train
+from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+from tgrf_jax.train.ppo import TrainState, make_train
+from tgrf_jax.train.progress import CsvWriter, LogFile, ProgressPrinter, TensorBoardWriter, run_rows
+from tgrf_jax.train.runner import EVAL_FILE, train_runs
 
-CSV_FIELDS = (
-    "update", "env_steps", "wall_s", "sps", "episodes", "episode_return", "success_rate", "collision_rate",
-    "timeout_rate", "loss", "pg_loss", "vf_loss", "entropy", "approx_kl", "clip_frac", "grad_norm", "lr",
-    "reward_mean",
-)
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
-EVAL_FILE = "eval.json"
 CURVE_FILE = "learning_curve.png"
 CHECKPOINT_DIR = "checkpoints"
+LOG_FILE = "progress.log"
+
+__all__ = ["EVAL_FILE", "RunResult", "SoloProgram", "evaluate_state", "format_eval", "load_run_config",
+           "params_digest", "restore_run", "train_run"]
 
 
 def default_run_dir(config: TrainConfig, root="runs") -> pathlib.Path:
@@ -57,95 +50,49 @@ def load_run_config(run_dir) -> TrainConfig:
     return TrainConfig.from_dict(load_yaml(path))
 
 
-def chunk_plan(start: int, total: int, log_every: int, checkpoint_every: int) -> list[int]:
-    """Chunk lengths from update `start` to `total`: at most log_every, never crossing a checkpoint multiple."""
-    plan, u = [], start
-    while u < total:
-        next_ckpt = (u // checkpoint_every + 1) * checkpoint_every
-        n = min(log_every - u % log_every, next_ckpt - u, total - u)
-        plan.append(n)
-        u += n
-    return plan
+class SoloProgram:
+    """One run (`make_train`): its env shards on one device each where there are enough, else vmapped."""
 
+    num_runs = 1
 
-def chunk_row(metrics: dict, update: int, env_steps: int, wall_s: float, sps: float) -> dict:
-    m = {k: float(v) for k, v in metrics.items()}
-    episodes = m["episodes"]
-    rate = lambda x: x / episodes if episodes > 0 else float("nan")  # noqa: E731
-    row = dict(
-        update=update, env_steps=env_steps, wall_s=round(wall_s, 3), sps=round(sps, 1), episodes=int(episodes),
-        episode_return=rate(m["return_sum"]), success_rate=rate(m["successes"]),
-        collision_rate=rate(m["collisions"]), timeout_rate=rate(m["timeouts"]),
-    )
-    for k in METRIC_NAMES:
-        if k not in ("episodes", "return_sum", "successes", "collisions", "timeouts"):
-            row[k] = m[k]
-    return row
+    def __init__(self, config: TrainConfig, devices="auto"):
+        self.config = config
+        self.train = make_train(config, devices)
+        self.num_updates = self.train.trainer.num_updates
+        self.batch_size = config.ppo.batch_size
+        self.key = jax.random.PRNGKey(config.run.seed)
+        self.compiled: dict[int, Callable] = {}
 
+    def init(self) -> TrainState:
+        return self.train.init(self.key, self.train.default_hparams)
 
-def _fmt_steps(n: float) -> str:
-    for unit, scale in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
-        if n >= scale:
-            return f"{n / scale:.2f}{unit}"
-    return f"{int(n)}"
+    def restore(self, checkpointer: Checkpointer, step: int):
+        template = jax.eval_shape(self.train.init, self.key, self.train.default_hparams)
+        state = self.train.place(checkpointer.restore(template, step))
+        return state, int(state.update)
 
+    def compiled_chunk(self, state, n: int):
+        if n in self.compiled:
+            return self.compiled[n], None
+        c0 = time.perf_counter()
+        self.compiled[n] = self.train.run_chunk.lower(state, n).compile()
+        return self.compiled[n], time.perf_counter() - c0
 
-def _fmt_time(s: float) -> str:
-    if not math.isfinite(s):
-        return "?"
-    s = int(round(s))
-    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+    def run_metrics(self, metrics) -> list[dict]:
+        return [{k: float(v) for k, v in jax.device_get(metrics).items()}]
 
+    def host_state(self, state):
+        return state
 
-def progress_line(row: dict, total_steps: int, eta_s: float) -> str:
-    f = lambda x, spec: "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)  # noqa
-    return (
-        f"[{_fmt_steps(row['env_steps'])}/{_fmt_steps(total_steps)} steps, update {row['update']}] "
-        f"{row['sps']:,.0f} steps/s | return {f(row['episode_return'], '7.2f')} | "
-        f"success {f(row['success_rate'], '.2f')} coll {f(row['collision_rate'], '.2f')} "
-        f"timeout {f(row['timeout_rate'], '.2f')} ({row['episodes']} eps) | "
-        f"ent {row['entropy']:.3f} vf {row['vf_loss']:.3g} | ETA {_fmt_time(eta_s)}"
-    )
+    def evaluate(self, state, episodes: int, seed: int) -> list[dict]:
+        return [evaluate_state(self.config, state, episodes, seed)]
 
-
-class _TensorBoard:
-    """Optional TensorBoard writer (tensorboardX, else torch.utils.tensorboard, else nothing)."""
-
-    def __init__(self, logdir):
-        self.writer = None
-        for module in ("tensorboardX", "torch.utils.tensorboard"):
-            try:
-                mod = __import__(module, fromlist=["SummaryWriter"])
-                self.writer = mod.SummaryWriter(str(logdir))
-                break
-            except Exception:
-                continue
-
-    def write(self, row: dict):
-        if self.writer is None:
-            return
-        step = int(row["env_steps"])
-        for k, v in row.items():
-            if k not in ("update", "env_steps") and isinstance(v, (int, float)) and math.isfinite(v):
-                self.writer.add_scalar(f"train/{k}", v, step)
-        self.writer.flush()
-
-    def close(self):
-        if self.writer is not None:
-            self.writer.close()
-
-
-def _rewrite_csv_upto(path: pathlib.Path, update: int) -> float:
-    """Keep rows with update <= `update` (drop rows of chunks after the restored checkpoint); returns last wall_s."""
-    if not path.is_file():
-        return 0.0
-    with open(path, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if int(float(r["update"])) <= update]
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        w.writeheader()
-        w.writerows(rows)
-    return float(rows[-1]["wall_s"]) if rows else 0.0
+    def describe(self, state) -> str:
+        t, p = self.train.trainer, self.config.ppo
+        return (f"{t.env} | {self.config.network.name}/{self.config.network.size} "
+                f"({t.net.num_params(state.params):,} params) | {p.num_envs} envs x {p.num_steps} steps, "
+                f"{self.num_updates} updates = {self.num_updates * p.batch_size:,} env steps | "
+                f"{shards.describe(p.num_shards, t.mesh)} | {jax.devices()[0].platform}")
 
 
 @dataclasses.dataclass
@@ -155,6 +102,7 @@ class RunResult:
     updates: int
     train_seconds: float
     eval: dict | None
+    compiled_chunks: int = 0
 
 
 def train_run(
@@ -178,99 +126,39 @@ def train_run(
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / CONFIG_FILE).write_text(config.to_yaml())
 
-    logfile = open(run_dir / "progress.log", "a")
-
-    def say(msg: str):
-        log(msg)
-        logfile.write(msg + "\n")
-        logfile.flush()
-
-    p, r = config.ppo, config.run
-    t = make_train(config)
-    total = t.trainer.num_updates
-    batch = p.batch_size
-    ckpt = Checkpointer(ckpt_dir, keep=r.keep_checkpoints, create=not resume)
-
-    start_time = time.perf_counter()
-    key = jax.random.PRNGKey(r.seed)
+    say = LogFile(run_dir / LOG_FILE, log)
+    program = SoloProgram(config)
+    ckpt = Checkpointer(ckpt_dir, keep=config.run.keep_checkpoints, create=not resume)
+    writers = [CsvWriter(run_dir / METRICS_FILE, run_rows(0)), TensorBoardWriter(run_dir / "tb"),
+               ProgressPrinter(say)]
     if resume:
-        step = ckpt.latest_step()
-        if step is None:
-            raise CheckpointError(f"cannot resume: no checkpoint in {str(ckpt.directory)!r}")
-        template = jax.eval_shape(t.init, key, t.default_hparams)
-        state = t.place(ckpt.restore(template, step))
-        start = int(state.update)
-        if start != step:
-            raise CheckpointError(f"checkpoint {str(ckpt.directory / str(step))!r} holds update {start}, not {step}")
-        wall_offset = _rewrite_csv_upto(run_dir / METRICS_FILE, start)
-        say(f"resumed {run_dir} at update {start}/{total} ({start * batch:,} env steps)")
-    else:
-        state = t.init(key, t.default_hparams)
-        start, wall_offset = 0, 0.0
-        ckpt.save(0, state)
+        say(f"resuming {run_dir}")
+    try:
+        out = train_runs(program, ckpt, config.run, resume=resume, progress_fns=writers, run_dirs=[run_dir],
+                         say=say, stop_after_updates=stop_after_updates)
+    finally:
+        for w in writers:
+            getattr(w, "close", lambda: None)()
+        ckpt.close()
 
-    say(f"{t.trainer.env} | {config.network.name}/{config.network.size} "
-        f"({t.trainer.net.num_params(state.params):,} params) | {p.num_envs} envs x {p.num_steps} steps, "
-        f"{total} updates = {total * batch:,} env steps | {shards.describe(p.num_shards, t.trainer.mesh)} | "
-        f"{jax.devices()[0].platform}")
-
-    csv_path = run_dir / METRICS_FILE
-    new_csv = not csv_path.is_file()
-    csv_file = open(csv_path, "a", newline="")
-    writer = csv.DictWriter(csv_file, fieldnames=CSV_FIELDS)
-    if new_csv:
-        writer.writeheader()
-    tb = _TensorBoard(run_dir / "tb")
-
-    end = total if stop_after_updates is None else min(total, stop_after_updates)
-    plan = chunk_plan(start, end, r.log_every, r.checkpoint_every)
-    compiled = {}
-    train_seconds = 0.0  # excluding compilation
-    updates_timed = 0
-    update = start
-    for n in plan:
-        if n not in compiled:
-            c0 = time.perf_counter()
-            compiled[n] = t.run_chunk.lower(state, n).compile()
-            say(f"compiled a {n}-update chunk in {time.perf_counter() - c0:.1f} s")
-        c0 = time.perf_counter()
-        state, metrics = compiled[n](state)
-        metrics = jax.device_get(metrics)  # blocks: the chunk is done
-        dt = time.perf_counter() - c0
-        train_seconds += dt
-        updates_timed += n
-        update += n
-        sec_per_update = train_seconds / updates_timed
-        row = chunk_row(metrics, update, update * batch, wall_offset + time.perf_counter() - start_time,
-                        n * batch / dt)
-        writer.writerow(row)
-        csv_file.flush()
-        tb.write(row)
-        say(progress_line(row, total * batch, (total - update) * sec_per_update))
-        if update % r.checkpoint_every == 0 or update == total:
-            ckpt.save(update, state)
-    csv_file.close()
-    tb.close()
-
-    result = RunResult(run_dir, state, update, train_seconds, None)
-    if update == total:
+    result = RunResult(run_dir, out.state, out.updates, out.train_seconds, out.evals and out.evals[0],
+                       out.compiled_chunks)
+    if out.updates == program.num_updates:
         try:
             from tgrf_jax.train.plots import plot_learning_curve
 
-            plot_learning_curve(csv_path, run_dir / CURVE_FILE, title=f"{config.run.name}: {t.trainer.env}")
+            plot_learning_curve(run_dir / METRICS_FILE, run_dir / CURVE_FILE,
+                                title=f"{config.run.name}: {program.train.trainer.env}")
         except Exception as e:  # a plotting failure must not lose a finished run
             say(f"warning: could not plot the learning curve: {e}")
-        if r.eval_episodes > 0:
-            say(f"evaluating the final policy on {r.eval_episodes} episodes ...")
-            result.eval = evaluate_state(config, state, r.eval_episodes, r.eval_seed)
-            payload = dict(result.eval, run_dir=str(run_dir), updates=update, env_steps=update * batch)
-            (run_dir / EVAL_FILE).write_text(json.dumps(payload, indent=2))
+        if result.eval is not None:
             say(format_eval(result.eval))
-        say(f"done: {update} updates, {update * batch:,} env steps; this session trained {update - start} updates "
-            f"in {train_seconds:.1f} s ({(update - start) * batch / max(train_seconds, 1e-9):,.0f} steps/s, "
-            f"compilation excluded); run dir {run_dir}")
-    ckpt.close()
-    logfile.close()
+        trained = out.updates - out.start
+        say(f"done: {out.updates} updates, {out.updates * config.ppo.batch_size:,} env steps; this process trained "
+            f"{trained} updates in {out.train_seconds:.1f} s "
+            f"({trained * config.ppo.batch_size / max(out.train_seconds, 1e-9):,.0f} steps/s, compilation "
+            f"excluded); run dir {run_dir}")
+    say.close()
     return result
 
 
@@ -284,8 +172,10 @@ def restore_run(run_dir, step: int | None = None) -> tuple[TrainConfig, TrainSta
     t = make_train(config)
     ckpt = Checkpointer(run_dir / CHECKPOINT_DIR, keep=config.run.keep_checkpoints, create=False)
     template = jax.eval_shape(t.init, jax.random.PRNGKey(0), t.default_hparams)
-    state = ckpt.restore(template, step)
-    ckpt.close()
+    try:
+        state = ckpt.restore(template, step)
+    finally:
+        ckpt.close()
     return config, state
 
 

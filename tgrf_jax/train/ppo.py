@@ -29,25 +29,20 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from tgrf_jax.config import TrainConfig
+from tgrf_jax.config import PPOConfig, TrainConfig
+from tgrf_jax.fields import traced_pytree, traced_values
 from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams, EnvState, Obs
 from tgrf_jax.nets import ActorCritic, make_network
 from tgrf_jax.train import shards
 from tgrf_jax.train.shards import SHARD_AXIS
 
 
-@struct.dataclass
-class HParams:
-    """Numeric hyper-parameters, traced: `vmap(train, in_axes=(0, 0))` over seeds x grid points works."""
+HParams = traced_pytree(
+    "HParams", PPOConfig, first=(("env", EnvParams),), module=__name__,
+    doc="""Numeric hyper-parameters, traced: `vmap(train, in_axes=(0, 0))` over seeds x grid points works.
 
-    env: EnvParams  # includes the reward parameters (env.reward)
-    lr: jnp.ndarray
-    gamma: jnp.ndarray
-    gae_lambda: jnp.ndarray
-    clip_eps: jnp.ndarray
-    vf_coef: jnp.ndarray
-    ent_coef: jnp.ndarray
-    max_grad_norm: jnp.ndarray
+    `env` (which holds the reward parameters) plus one float32 leaf per traced field of `PPOConfig`.""",
+)
 
 
 @struct.dataclass
@@ -143,22 +138,17 @@ def field_prefix(env_value, shared_value) -> TrainState:
                          for f in dataclasses.fields(TrainState)})
 
 
-# Reduced per-update scalars. Episode fields are sums (of episodes finished in the update) so a chunk can add them.
-METRIC_NAMES = (
-    "episodes", "return_sum", "successes", "collisions", "timeouts",
+# Reduced per-update scalars. The episode fields are sums (over the episodes that ended in the update), so chunks
+# and runs add them up; the others are averaged.
+SUMMED_METRICS = ("episodes", "return_sum", "successes", "collisions", "timeouts")
+METRIC_NAMES = SUMMED_METRICS + (
     "loss", "pg_loss", "vf_loss", "entropy", "approx_kl", "clip_frac", "grad_norm", "lr", "reward_mean",
 )
-_SUMMED = ("episodes", "return_sum", "successes", "collisions", "timeouts")
 
 
 def hparams_from_config(config: TrainConfig, env: CrowdNavEnv | None = None) -> HParams:
     env = env or CrowdNavEnv(config.env, config.reward)
-    p = config.ppo
-    f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return HParams(
-        env=env.default_params, lr=f(p.lr), gamma=f(p.gamma), gae_lambda=f(p.gae_lambda), clip_eps=f(p.clip_eps),
-        vf_coef=f(p.vf_coef), ent_coef=f(p.ent_coef), max_grad_norm=f(p.max_grad_norm),
-    )
+    return HParams(env=env.default_params, **traced_values(config.ppo))
 
 
 # ------------------------------------------------------------------------------------------------ pure pieces
@@ -228,10 +218,20 @@ def split_envs(x, n):
 
 
 def clip_by_global_norm(grads, max_norm):
-    """optax.clip_by_global_norm with a traced max_norm; returns (clipped grads, pre-clip norm)."""
+    """Scale `grads` down to global norm `max_norm` (traced); returns (clipped grads, pre-clip norm).
+
+    Kept by hand rather than `optax.clip_by_global_norm`: optax rescales each leaf as `g / norm * max_norm`, this
+    as `g * (max_norm / norm)`, and the float32 rounding difference would change every trained run's numbers."""
     g_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree_util.tree_leaves(grads)))
     scale = jnp.where(g_norm > max_norm, max_norm / jnp.maximum(g_norm, 1e-12), 1.0)
     return jax.tree_util.tree_map(lambda g: g * scale, grads), g_norm
+
+
+def learning_rate(ppo: PPOConfig, lr, update, num_updates: int):
+    """The learning rate of update `update`: `lr` (traced), or with `ppo.anneal_lr` decaying linearly to 0 over
+    the run (an optax schedule of the update index, so the rate is constant within an update)."""
+    schedule = optax.linear_schedule(lr, 0.0, num_updates) if ppo.anneal_lr else optax.constant_schedule(lr)
+    return schedule(update)
 
 
 # ---------------------------------------------------------------------------------------------------- trainer
@@ -323,7 +323,7 @@ class Trainer:
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(k_env, p.num_envs), hparams.env)
         return TrainState(
             params=params,
-            opt_state=self._adam.init(params),
+            opt_state=self.optimizer.init(params),
             env_state=env_state,
             obs=obs,
             carry=self.net.initialize_carry(p.num_envs),
@@ -336,7 +336,8 @@ class Trainer:
         )
 
     @property
-    def _adam(self):
+    def optimizer(self) -> optax.GradientTransformation:
+        """Adam's moment estimates; the step `-lr * update` is applied by `update` (the rate is traced)."""
         return optax.scale_by_adam(eps=self.config.ppo.adam_eps)
 
     # --------------------------------------------------------------------------------------------- rollout
@@ -407,12 +408,7 @@ class Trainer:
         return_stats = ts.return_stats.update(returns, self._mean) if p.norm_value else ts.return_stats
         value_stats = return_stats if p.norm_value else None
 
-        # --- learning rate (optional linear decay to 0 over the run)
-        if p.anneal_lr:
-            lr = hp.lr * (1.0 - ts.update.astype(jnp.float32) / self.num_updates)
-        else:
-            lr = hp.lr
-
+        lr = learning_rate(p, hp.lr, ts.update, self.num_updates)
         # --- epochs x minibatches over envs (whole sequences)
         n_mb = p.num_minibatches
         loss_grad = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
@@ -444,7 +440,7 @@ class Trainer:
             params, opt_state = carry
             (loss, aux), grads = self._pmean(minibatch_grad(params, mb))
             grads, g_norm = clip_by_global_norm(grads, hp.max_grad_norm)
-            updates, opt_state = self._adam.update(grads, opt_state, params)
+            updates, opt_state = self.optimizer.update(grads, opt_state, params)
             params = optax.apply_updates(params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
             return (params, opt_state), dict(aux, loss=loss, grad_norm=g_norm)
 
@@ -493,7 +489,7 @@ class Trainer:
 
 def reduce_metrics(per_update: dict) -> dict:
     """Chunk metrics: episode counts/sums added over the leading (update) axis, others averaged."""
-    return {k: (jnp.sum(v, axis=0) if k in _SUMMED else jnp.mean(v, axis=0)) for k, v in per_update.items()}
+    return {k: (jnp.sum(v, axis=0) if k in SUMMED_METRICS else jnp.mean(v, axis=0)) for k, v in per_update.items()}
 
 
 def make_network_for(config: TrainConfig) -> ActorCritic:

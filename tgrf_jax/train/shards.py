@@ -5,37 +5,16 @@ collectives over the axis `SHARD_AXIS` (the mean of every minibatch gradient, ad
 statistics, episode counts). The numbers depend on `ppo.num_shards`, not on where the shards run, up to float
 rounding: separate devices and a vmap on one device reduce in different orders.
 
-Why devices on a CPU: XLA:CPU spreads one program's small ops over the cores poorly (the default run on 2 cores
-used 1.66 cores for 1.28x the 1-core speed), while two programs pinned to one core each run side by side. With
-one CPU device per shard, each shard's program gets a core. XLA creates CPU devices once, when JAX first touches
-the backend, from `XLA_FLAGS=--xla_force_host_platform_device_count=N`; `request_cpu_devices` sets that flag
-for the command-line tools before anything else runs.
+On a CPU, XLA spreads one program's small ops over the cores poorly, while programs pinned to one device each run
+side by side, so tgrf-train asks for one CPU device per shard (`tgrf_jax.configure_cpu`, docs/design.md).
 """
 
 from __future__ import annotations
-
-import os
 
 import jax
 import numpy as np
 
 SHARD_AXIS = "shards"
-_DEVICE_COUNT_FLAG = "--xla_force_host_platform_device_count"
-
-
-def request_cpu_devices(n: int) -> bool:
-    """Ask XLA for `n` CPU devices (one per shard) unless the user's XLA_FLAGS already choose a count.
-
-    Does nothing once JAX's backends exist (call it first thing in a process); returns whether the flag was
-    added. Other platforms (GPU, TPU) are unaffected: the flag only splits the host.
-    """
-    from jax._src import xla_bridge  # no public way to ask whether the devices exist already
-
-    flags = os.environ.get("XLA_FLAGS", "")
-    if n <= 1 or _DEVICE_COUNT_FLAG in flags or xla_bridge.backends_are_initialized():
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} {_DEVICE_COUNT_FLAG}={n}".strip()
-    return True
 
 
 def shard_mesh(num_shards: int, devices="auto") -> jax.sharding.Mesh | None:

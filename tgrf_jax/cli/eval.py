@@ -1,0 +1,76 @@
+"""tgrf-eval: the SPEC A.4 metrics table of a trained policy (RUN_DIR) and / or baseline robots."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from tgrf_jax.cli.common import add_config_args, error, scenario, start, write_json
+from tgrf_jax.config import ConfigError
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tgrf-eval",
+        description="Evaluate a robot policy on N distinct episodes and print the SPEC A.4 metrics table. "
+        "With a RUN_DIR (from tgrf-train) the trained policy is evaluated on the run's env/reward config "
+        "(plus any --policy baselines on the same scenario); otherwise the baselines on a YAML config.",
+    )
+    add_config_args(p, "a tgrf-train run directory, or a YAML file with env/reward sections (default: paper "
+                       "scenario)", run_dir=True)
+    p.add_argument("--policy", action="append", choices=["straight", "orca"],
+                   help="baseline robot policy (repeatable; default without RUN_DIR: both)")
+    p.add_argument("--episodes", type=int, default=500)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to evaluate; default: latest")
+    p.add_argument("--out", help="write the metrics as JSON to this file")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        if args.episodes < 1:
+            raise ConfigError(f"--episodes = {args.episodes} must be >= 1")
+        sc = scenario(args.config, args.overrides, "tgrf-eval")
+        if args.step is not None and sc.run_dir is None:
+            raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
+    except ConfigError as e:
+        return error("tgrf-eval", e)
+
+    start()
+    import jax
+
+    from tgrf_jax.train.checkpoint import CheckpointError
+    from tgrf_jax.train.loop import evaluate_state, format_eval, restore_run
+
+    if sc.run_dir is not None:
+        try:
+            _, state = restore_run(sc.run_dir, args.step)
+        except (CheckpointError, ConfigError) as e:
+            return error("tgrf-eval", e)
+        print(f"{sc.run_dir}: update {int(state.update)} on {jax.devices()[0].platform}; {args.episodes} episodes, "
+              f"seed {args.seed}", flush=True)
+        t0 = time.perf_counter()
+        payload = evaluate_state(sc.config, state, args.episodes, args.seed, baselines=args.policy or ())
+        payload.update(run_dir=str(sc.run_dir), update=int(state.update))
+    else:
+        from tgrf_jax.env import CrowdNavEnv
+        from tgrf_jax.evaluate import evaluate
+        from tgrf_jax.policies import baseline
+
+        env = CrowdNavEnv(sc.env, sc.reward)
+        print(f"{env} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}", flush=True)
+        t0 = time.perf_counter()
+        results = {name: evaluate(env, baseline(name), jax.random.key(args.seed), args.episodes)
+                   for name in args.policy or ["straight", "orca"]}
+        payload = {"env": repr(env), "seed": args.seed, "results": {k: v.to_dict() for k, v in results.items()}}
+    print(f"  done in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)
+    print(format_eval(payload))
+    write_json(args.out, payload)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,143 @@
+"""tgrf-render: episodes of a trained policy (RUN_DIR) and / or baseline robots as PNG frames, GIFs and MP4s."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pathlib
+import sys
+import time
+
+from tgrf_jax.cli.common import add_config_args, error, scenario, start
+from tgrf_jax.config import ConfigError
+
+POLICY_CHOICES = ("straight", "orca")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tgrf-render",
+        description="Render episodes as PNG frames, a GIF and (when ffmpeg is on PATH) an MP4. With a RUN_DIR "
+        "(from tgrf-train) the trained policy is rendered on the run's own scenario (plus any --policy "
+        "baselines); otherwise --policy baselines on a YAML config (default: the paper scenario).",
+    )
+    add_config_args(p, "a tgrf-train run directory, or a YAML file with env/reward sections", run_dir=True)
+    p.add_argument("--policy", action="append", choices=POLICY_CHOICES, help="baseline robot (repeatable)")
+    p.add_argument("--episodes", type=int, default=1, help="episodes per policy (default 1)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--seed", type=int, default=0,
+                   help="episode i is episode i of tgrf-eval --seed S with as many episodes (default 0)")
+    p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to render; default latest")
+    p.add_argument("--fps", type=float, default=8.0, help="GIF/MP4 frames per second (default 8 = 2x real time)")
+    p.add_argument("--dpi", type=int, default=90, help="frame resolution (default 90: 648 x 720 pixels)")
+    p.add_argument("--stride", type=int, default=1, help="draw every STRIDE-th step (default 1)")
+    p.add_argument("--no-frames", action="store_true", help="skip the PNG frames")
+    p.add_argument("--no-gif", action="store_true", help="skip the GIF")
+    p.add_argument("--no-mp4", action="store_true", help="skip the MP4 even when ffmpeg is available")
+    return p
+
+
+def check(args):
+    """Everything that can be checked without compiling; returns the scenario. Raises ConfigError."""
+    from tgrf_jax.render.export import ffmpeg_path
+
+    if args.episodes < 1:
+        raise ConfigError(f"--episodes = {args.episodes} must be >= 1")
+    if not (args.fps > 0 and math.isfinite(args.fps)):
+        raise ConfigError(f"--fps = {args.fps} must be > 0")
+    if args.stride < 1:
+        raise ConfigError(f"--stride = {args.stride} must be >= 1")
+    if not 10 <= args.dpi <= 600:
+        raise ConfigError(f"--dpi = {args.dpi} must be between 10 and 600")
+    if args.seed < 0:
+        raise ConfigError(f"--seed = {args.seed} must be >= 0")
+    out = pathlib.Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {str(out)!r} exists and is not a directory")
+    if args.no_frames and args.no_gif and (args.no_mp4 or ffmpeg_path() is None):
+        raise ConfigError("nothing to write: --no-frames and --no-gif" + (
+            " and --no-mp4" if args.no_mp4 else " (and ffmpeg is not on PATH for an MP4)"))
+    choices = "|".join(POLICY_CHOICES)
+    if args.config is not None:
+        src = pathlib.Path(args.config)
+        if not src.exists():
+            raise ConfigError(f"{args.config!r} does not exist (expected a tgrf-train run directory or a YAML config)")
+        if not src.is_dir() and not args.policy:
+            raise ConfigError(f"{args.config!r} is a config file: name the robot with --policy {choices} (a trained "
+                              "policy needs its RUN_DIR)")
+    elif not args.policy:
+        raise ConfigError(f"give a RUN_DIR or --policy {choices}")
+    sc = scenario(args.config, args.overrides, "tgrf-render")
+    if args.step is not None and sc.run_dir is None:
+        raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
+    return sc
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`tgrf-render`: returns the exit status (0 ok, 2 invalid input)."""
+    args = parser().parse_args(argv)
+    try:
+        sc = check(args)
+    except ConfigError as e:
+        return error("tgrf-render", e)
+
+    start()
+    import jax
+
+    from tgrf_jax.env import CrowdNavEnv
+    from tgrf_jax.policies import baseline
+    from tgrf_jax.render import eval_key, ffmpeg_path, record_episodes, save_episode
+
+    env = CrowdNavEnv(sc.env, sc.reward)
+    policies = []
+    if sc.run_dir is not None:
+        from tgrf_jax.train.checkpoint import CheckpointError
+        from tgrf_jax.train.loop import restore_run
+        from tgrf_jax.train.policy import LearnedPolicy
+        from tgrf_jax.train.ppo import make_network_for
+
+        try:
+            _, state = restore_run(sc.run_dir, args.step)
+        except (CheckpointError, ValueError) as e:
+            return error("tgrf-render", e)
+        policies.append((f"learned (update {int(state.update)})", "learned",
+                         LearnedPolicy(make_network_for(sc.config), state.params)))
+    for name in args.policy or ():
+        if name not in [p[1] for p in policies]:
+            policies.append((name, name, baseline(name)))
+
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    mp4 = False if args.no_mp4 else None
+    if not args.no_mp4 and ffmpeg_path() is None:
+        print("tgrf-render: ffmpeg is not on PATH: writing PNG frames and GIFs only", flush=True)
+    print(f"{env} on {jax.devices()[0].platform}; {args.episodes} episode(s) per policy, seed {args.seed}", flush=True)
+    summary = {"env": repr(env), "seed": args.seed, "source": args.config, "episodes": []}
+    n_files = 0
+    for label, slug, policy in policies:
+        t0 = time.perf_counter()
+        print(f"{label}: recording {args.episodes} episode(s) ...", flush=True)
+        episodes = record_episodes(env, policy, eval_key(args.seed), args.episodes, label=label)
+        print(f"  recorded in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)
+        for ep in episodes:
+            t0 = time.perf_counter()
+            paths = save_episode(ep, out / slug, frames=not args.no_frames, gif=not args.no_gif, mp4=mp4,
+                                 fps=args.fps, dpi=args.dpi, stride=args.stride)
+            n_files += len(paths["frames"]) + sum(paths[k] is not None for k in ("gif", "mp4"))
+            row = dict(ep.summary(), policy=slug, gif=paths["gif"] and str(paths["gif"]),
+                       mp4=paths["mp4"] and str(paths["mp4"]), frames=len(paths["frames"]),
+                       frame_dir=str(out / slug / f"ep{ep.index:03d}") if paths["frames"] else None)
+            summary["episodes"].append(row)
+            made = ", ".join(x for x in (row["gif"], row["mp4"], paths["frames"] and
+                                         f"{len(paths['frames'])} frames in {row['frame_dir']}") if x)
+            print(f"  episode {ep.index}: {ep.outcome} after {ep.duration:.2f} s ({ep.steps} steps), return "
+                  f"{ep.ret:+.2f} -> {made} [{time.perf_counter() - t0:.1f} s]", flush=True)
+    summary_path = out / "summary.json"
+    summary_path.write_text(json.dumps(summary, indent=2))
+    print(f"wrote {n_files + 1} files under {out}/ (index: {summary_path})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,111 @@
+"""tgrf-sweep: a grid of hyper-parameters x seeds trained as one vmapped, compiled program, split over devices."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import sys
+
+from tgrf_jax.cli.common import add_config_args, error, start
+from tgrf_jax.config import ConfigError, griddable_fields
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tgrf-sweep",
+        description="Train a grid of hyper-parameters x seeds as one vmapped, compiled program, with the runs split "
+        "over all devices. Only traced (numeric, shape-preserving) fields can be gridded; see --list-griddable.",
+    )
+    add_config_args(p, "YAML config as for tgrf-train (default: the embedded default)")
+    p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...",
+                   help="a grid axis, e.g. --grid reward.h_disc=0.5,1.0,2.5 (repeatable: Cartesian product)")
+    p.add_argument("--seeds", default=None, metavar="N|S1,S2,...",
+                   help="a count (run.seed, run.seed+1, ...) or a comma-separated list of seeds (default: 1)")
+    p.add_argument("--out", help="sweep directory (default: runs/<timestamp>_sweep_<run.name>)")
+    p.add_argument("--resume", metavar="SWEEP_DIR", help="continue the sweep in SWEEP_DIR from its last checkpoint")
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="use the first N devices (default: all of them, across all hosts)")
+    p.add_argument("--no-run-checkpoints", action="store_true",
+                   help="do not write each run's final checkpoint under runs/<name>/checkpoints")
+    dist = p.add_argument_group("multi-host (one process per host, all with the same arguments; the sweep "
+                                "directory must be on a filesystem all hosts share)")
+    dist.add_argument("--distributed", action="store_true",
+                      help="call jax.distributed.initialize() with its auto-detection (SLURM, Cloud TPU, ...)")
+    dist.add_argument("--coordinator", metavar="HOST:PORT", help="jax.distributed coordinator (process 0's address)")
+    dist.add_argument("--num-processes", type=int, help="with --coordinator: number of processes")
+    dist.add_argument("--process-id", type=int, help="with --coordinator: this process's index (0 .. N-1)")
+    p.add_argument("--print-plan", action="store_true", help="print the runs and exit (nothing is compiled)")
+    p.add_argument("--list-griddable", action="store_true", help="print the griddable fields and exit")
+    return p
+
+
+def init_distributed(coordinator: str | None = None, num_processes: int | None = None,
+                     process_id: int | None = None) -> None:
+    """jax.distributed.initialize (before any computation); on CPU with gloo collectives for the host gathers."""
+    import jax
+
+    if coordinator and (num_processes is None or process_id is None):
+        raise ConfigError("--coordinator needs --num-processes and --process-id")
+    if jax.config.jax_platforms in ("cpu",) or jax.config.jax_platforms is None:
+        try:  # CPU-only processes need a cross-process collectives backend for the gathers; harmless elsewhere
+            jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        except Exception:
+            pass
+    if coordinator:
+        jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
+                                   process_id=process_id)
+    else:
+        jax.distributed.initialize()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    if args.list_griddable:
+        print("\n".join(griddable_fields()))
+        return 0
+    from tgrf_jax.sweep.grid import SweepSpec, load_sweep
+
+    try:
+        if args.resume:
+            if args.config or args.grid or args.overrides or args.seeds or args.out:
+                raise ConfigError("--resume SWEEP_DIR takes no config file, --grid, --seeds, --set or --out (the "
+                                  "sweep's own sweep.yaml is used)")
+            spec = load_sweep(args.resume)
+        else:
+            spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides)
+        distributed = bool(args.coordinator or args.distributed)
+        if distributed and args.out is None and not args.resume:
+            raise ConfigError("a multi-host sweep needs --out (the same shared directory on every host)")
+    except ConfigError as e:
+        return error("tgrf-sweep", e)
+    if args.print_plan:
+        print(spec.describe())
+        return 0
+
+    # One CPU device per core: the runs split over the devices, and XLA:CPU runs several programs side by side
+    # far better than it spreads one over the cores (a user's own count wins).
+    start(devices=len(os.sched_getaffinity(0)))
+    if distributed:
+        try:
+            init_distributed(args.coordinator, args.num_processes, args.process_id)
+        except ConfigError as e:
+            return error("tgrf-sweep", e)
+    from tgrf_jax.sweep.run import default_sweep_dir, run_sweep
+    from tgrf_jax.train.checkpoint import CheckpointError
+
+    sweep_dir = pathlib.Path(args.resume or args.out or default_sweep_dir(spec.base_config))
+    try:
+        run_sweep(None if args.resume else spec, sweep_dir, resume=bool(args.resume),
+                  log=lambda m: print(m, flush=True), num_devices=args.devices,
+                  export_checkpoints=not args.no_run_checkpoints)
+    except (CheckpointError, ConfigError) as e:
+        return error("tgrf-sweep", e)
+    except KeyboardInterrupt:
+        print(f"tgrf-sweep: interrupted; resume with: tgrf-sweep --resume {sweep_dir}", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

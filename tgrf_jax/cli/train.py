@@ -1,0 +1,60 @@
+"""tgrf-train: train a PPO crowd-navigation policy in a run directory, or resume one."""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+from tgrf_jax.cli.common import add_config_args, error, start, train_config
+from tgrf_jax.config import ConfigError
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tgrf-train",
+        description="Train a PPO crowd-navigation policy. Without a config file the embedded default is used "
+        "(configs/default.yaml holds the same values).",
+    )
+    add_config_args(p, "YAML with env/reward/ppo/network/run sections (all optional)")
+    p.add_argument("--out-dir", help="run directory (default: runs/<timestamp>_<run.name>)")
+    p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
+    p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    from tgrf_jax.train.checkpoint import CheckpointError
+    from tgrf_jax.train.loop import default_run_dir, load_run_config
+
+    try:
+        if args.resume:
+            if args.config or args.overrides or args.out_dir:
+                raise ConfigError("--resume RUN_DIR takes no config file, --set or --out-dir (the run's own "
+                                  "config.yaml is used)")
+            config = load_run_config(args.resume)
+        else:
+            config = train_config(args.config, args.overrides)
+    except ConfigError as e:
+        return error("tgrf-train", e)
+    if args.print_config:
+        print(config.to_yaml(), end="")
+        return 0
+
+    start(devices=config.ppo.num_shards, say_cache=True)  # one CPU device per env shard
+    from tgrf_jax.train.loop import train_run
+
+    run_dir = pathlib.Path(args.resume or args.out_dir or default_run_dir(config))
+    try:
+        train_run(config, run_dir, resume=bool(args.resume), log=lambda m: print(m, flush=True))
+    except (CheckpointError, ConfigError) as e:
+        return error("tgrf-train", e)
+    except KeyboardInterrupt:
+        print(f"tgrf-train: interrupted; resume with: tgrf-train --resume {run_dir}", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,230 @@
+"""Declaring, validating and loading config fields: the machinery behind `tgrf_jax.config`.
+
+A field is declared once with `spec` (static: shapes and code paths) or `traced` (a float32 leaf of a traced
+parameter pytree), with its default, allowed range or choices and a doc string. `check_fields` validates an
+instance against those declarations, `from_dict` builds one from a (YAML) mapping with clear errors naming the
+dotted field, `apply_overrides` applies `--set section.field=value`, and `traced_pytree` derives a pytree class
+from the traced fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import pathlib
+from typing import Any, Mapping
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration value or key is invalid; the message names the field and what is allowed."""
+
+
+def spec(default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc="",
+         traced=False):
+    """A static dataclass field with its allowed range or choices (`traced=True`: see `traced`)."""
+    return dataclasses.field(
+        default=default,
+        metadata=dict(
+            low=low, high=high, low_inclusive=low_inclusive, high_inclusive=high_inclusive,
+            choices=choices, doc=doc, traced=traced,
+        ),
+    )
+
+
+def traced(default, **kwargs):
+    """A numeric field that becomes a float32 leaf of the traced parameter pytree of its section."""
+    return spec(default, traced=True, **kwargs)
+
+
+def traced_names(cls) -> tuple[str, ...]:
+    """The traced fields of a config dataclass, in declaration order."""
+    return tuple(f.name for f in dataclasses.fields(cls) if f.metadata.get("traced"))
+
+
+def traced_pytree(name: str, config_cls, *, first=(), last=(), base=None, module=None, doc=None):
+    """A `flax.struct.dataclass` with one array leaf per traced field of `config_cls`, between the extra
+    `(name, type)` fields `first` and `last`; `base` (a plain class) contributes properties and methods."""
+    import jax.numpy as jnp
+    from flax import struct
+
+    annotations = dict(first)
+    annotations.update({n: jnp.ndarray for n in traced_names(config_cls)})
+    annotations.update(dict(last))
+    namespace = {"__annotations__": annotations, "__module__": module or __name__, "__qualname__": name,
+                 "__doc__": doc}
+    return struct.dataclass(type(name, (base,) if base else (), namespace))
+
+
+def traced_values(config) -> dict:
+    """{name: float32 array} of the traced fields of a config instance."""
+    import jax.numpy as jnp
+
+    return {n: jnp.asarray(getattr(config, n), jnp.float32) for n in traced_names(type(config))}
+
+
+def describe_allowed(meta: Mapping[str, Any]) -> str:
+    if meta.get("choices") is not None:
+        return "one of " + ", ".join(repr(c) for c in meta["choices"])
+    lo, hi = meta.get("low"), meta.get("high")
+    parts = []
+    if lo is not None:
+        parts.append(f"{'>=' if meta['low_inclusive'] else '>'} {lo}")
+    if hi is not None:
+        parts.append(f"{'<=' if meta['high_inclusive'] else '<'} {hi}")
+    return " and ".join(parts) if parts else "any value"
+
+
+def _coerce(value, default, name: str):
+    """Coerce a loaded value to the type of the field's default, rejecting lossy conversions."""
+    if isinstance(default, bool):
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no"):
+            return value.lower() in ("true", "1", "yes")
+        raise ConfigError(f"{name} = {value!r} must be a boolean (true/false)")
+    if isinstance(default, int):
+        if isinstance(value, bool):
+            raise ConfigError(f"{name} = {value!r} must be an integer")
+        if isinstance(value, str):
+            try:
+                value = float(value)
+            except ValueError:
+                raise ConfigError(f"{name} = {value!r} must be an integer") from None
+        if isinstance(value, float):
+            if not value.is_integer():
+                raise ConfigError(f"{name} = {value!r} must be an integer")
+            value = int(value)
+        if not isinstance(value, int):
+            raise ConfigError(f"{name} = {value!r} must be an integer")
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool):
+            raise ConfigError(f"{name} = {value!r} must be a number")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name} = {value!r} must be a number") from None
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"{name} = {value!r} must be a string")
+        return value
+    return value
+
+
+def check_fields(obj, prefix: str) -> None:
+    """Check every field of a config dataclass against its declared range/choices."""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        name = f"{prefix}.{f.name}" if prefix else f.name
+        meta = f.metadata
+        if dataclasses.is_dataclass(value):
+            continue
+        if meta.get("choices") is not None:
+            if value not in meta["choices"]:
+                raise ConfigError(f"{name} = {value!r} is not allowed; allowed: {describe_allowed(meta)}")
+            continue
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{name} = {value!r} must be finite; allowed: {describe_allowed(meta)}")
+        lo, hi = meta.get("low"), meta.get("high")
+        too_low = lo is not None and (value < lo if meta["low_inclusive"] else value <= lo)
+        too_high = hi is not None and (value > hi if meta["high_inclusive"] else value >= hi)
+        if too_low or too_high:
+            raise ConfigError(f"{name} = {value!r} is out of range; allowed: {describe_allowed(meta)}")
+
+
+def _unknown_key_error(key: str, prefix: str, valid: list[str]) -> ConfigError:
+    name = f"{prefix}.{key}" if prefix else key
+    close = difflib.get_close_matches(key, valid, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return ConfigError(f"unknown config key {name!r}{hint}; valid keys: {', '.join(valid)}")
+
+
+def from_dict(cls, data: Mapping[str, Any] | None, prefix: str = ""):
+    """Build a config dataclass from a (possibly nested, possibly partial) mapping, validating keys and types."""
+    data = dict(data or {})
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in fields:
+            raise _unknown_key_error(key, prefix, list(fields))
+        name = f"{prefix}.{key}" if prefix else key
+        default = fields[key].default
+        if default is dataclasses.MISSING and fields[key].default_factory is not dataclasses.MISSING:
+            default = fields[key].default_factory()
+        if dataclasses.is_dataclass(default):
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"{name} must be a mapping of {type(default).__name__} fields")
+            kwargs[key] = from_dict(type(default), value, name)
+        else:
+            kwargs[key] = _coerce(value, default, name)
+    try:
+        return cls(**kwargs)
+    except ConfigError as e:
+        if prefix and not str(e).startswith(prefix):
+            raise ConfigError(f"{prefix}.{e}") from None
+        raise
+
+
+def to_dict(obj) -> dict:
+    return dataclasses.asdict(obj)
+
+
+def load_yaml(path) -> dict:
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {str(path)!r} does not exist")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {e}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {str(path)!r} must hold a mapping at the top level")
+    return data
+
+
+def parse_scalar(raw: str):
+    """A command-line value as YAML reads it (1 -> int, 1e-3 -> float, true -> bool); unparsable text as is."""
+    if not raw.strip():
+        return raw
+    try:
+        return yaml.safe_load(raw)
+    except yaml.YAMLError:
+        return raw.strip()
+
+
+def set_dotted(data: dict, dotted: str, value) -> dict:
+    """A copy of the nested dict `data` with `section.field` set to `value`."""
+    import copy
+
+    data = copy.deepcopy(data)
+    keys = dotted.strip().split(".")
+    node = data
+    for k in keys[:-1]:
+        if node.get(k) is None:
+            node[k] = {}
+        node = node[k]
+        if not isinstance(node, dict):
+            raise ConfigError(f"{dotted}: {k!r} is not a section")
+    node[keys[-1]] = value
+    return data
+
+
+def apply_overrides(data: dict, overrides: list[str]) -> dict:
+    """Apply `a.b.c=value` overrides (values parsed as YAML scalars) to a nested dict, returning a copy."""
+    import copy
+
+    data = copy.deepcopy(data)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} must look like section.field=value")
+        dotted, raw = item.split("=", 1)
+        try:
+            data = set_dotted(data, dotted, parse_scalar(raw))
+        except ConfigError as e:
+            raise ConfigError(f"override {item!r}: {e}") from None
+    return data

@@ -1,0 +1,17 @@
+"""Episode rendering: `record` plays episodes in one jitted scan, `draw` paints them with matplotlib, `export`
+writes PNG frames, GIFs and MP4s or builds inline players. The `tgrf-render` command is `tgrf_jax.cli.render`.
+
+Figures are built on `matplotlib.figure.Figure` with an Agg canvas, never through pyplot, so nothing here touches
+the global backend or shows stray figures in notebooks.
+"""
+
+from tgrf_jax.render.draw import (
+    FramePainter, draw_frame, new_figure, plot_frame, plot_reward_terms, view_limits,
+)
+from tgrf_jax.render.export import animate, ffmpeg_path, gif_bytes, save_episode, show, to_jshtml
+from tgrf_jax.render.record import Episode, eval_key, record_episodes
+
+__all__ = [
+    "Episode", "FramePainter", "animate", "draw_frame", "eval_key", "ffmpeg_path", "gif_bytes", "new_figure",
+    "plot_frame", "plot_reward_terms", "record_episodes", "save_episode", "show", "to_jshtml", "view_limits",
+]

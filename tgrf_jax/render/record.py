@@ -1,0 +1,176 @@
+"""Recording episodes in JAX: a `lax.scan` over the time limit plays a batch of episodes with the same keys and
+step order as `tgrf_jax.evaluate` (so episode i of a render and of an evaluation with the same seed and count are
+the same episode) and returns every state, the robot's visibility mask, the predictions it observed and the
+reward split into its terms, as numpy `Episode`s. Everything after that is host code."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+
+
+@dataclasses.dataclass
+class Episode:
+    """One recorded episode as numpy arrays. T = `steps`; index 0 of the (T+1)-long arrays is the reset state.
+
+    `visible` is in human-index order (True: within sensor range). `pred_pos` / `pred_mask` are the observation's
+    predicted world positions in the observation's own row order (visible humans first), so only what the robot
+    observed is drawn. Per-step arrays (`reward`, `terms`, `outcomes`) are T long: entry t-1 belongs to step t.
+    """
+
+    label: str
+    index: int
+    robot_pos: np.ndarray  # (T+1, 2)
+    robot_vel: np.ndarray  # (T+1, 2)
+    goal: np.ndarray  # (2,)
+    human_pos: np.ndarray  # (T+1, N, 2)
+    human_radius: np.ndarray  # (T+1, N)
+    visible: np.ndarray  # (T+1, N) bool, human-index order
+    obs_human_pos: np.ndarray  # (T+1, N, 2) world positions of the observed rows (sorted, visible first)
+    obs_mask: np.ndarray  # (T+1, N) bool, the observation's human_mask
+    pred_pos: np.ndarray | None  # (T+1, N, K, 2) observed predictions (world), None without a predictor
+    reward: np.ndarray  # (T,)
+    terms: dict  # name -> (T,)
+    outcomes: np.ndarray  # (T,) int, the last one is the episode's outcome
+    dt: float
+    robot_radius: float
+    sensor_range: float
+    d_disc: float
+    goal_tolerance: float
+    max_steps: int
+
+    @property
+    def steps(self) -> int:
+        return len(self.reward)
+
+    @property
+    def num_humans(self) -> int:
+        return self.human_pos.shape[1]
+
+    @property
+    def outcome(self) -> str:
+        from tgrf_jax.env import OUTCOME_NAMES
+
+        return OUTCOME_NAMES[int(self.outcomes[-1])] if self.steps else "running"
+
+    @property
+    def duration(self) -> float:
+        return self.steps * self.dt
+
+    @property
+    def ret(self) -> float:
+        return float(self.reward.sum())
+
+    def dmin(self) -> np.ndarray:
+        """Nearest edge-to-edge robot-human distance of every recorded state (T+1,) (inf without humans)."""
+        if self.num_humans == 0:
+            return np.full(self.steps + 1, np.inf)
+        d = np.linalg.norm(self.human_pos - self.robot_pos[:, None], axis=-1) - self.robot_radius - self.human_radius
+        return d.min(axis=1)
+
+    def summary(self) -> dict:
+        return dict(label=self.label, episode=self.index, outcome=self.outcome, steps=self.steps,
+                    time=round(self.duration, 3), ret=round(self.ret, 4),
+                    path_length=round(float(np.linalg.norm(np.diff(self.robot_pos, axis=0), axis=-1).sum()), 4))
+
+
+def _record(env, policy, key, n_episodes: int, params, n_steps: int):
+    """Pure: play `n_episodes` episodes for `n_steps` steps, freezing each after it ends; returns stacked outputs."""
+    import jax
+    import jax.numpy as jnp
+
+    from tgrf_jax.env import sensing
+
+    def snapshot(obs, state):
+        visible = jax.vmap(sensing.visible_mask, in_axes=(0, None))(state, params)
+        return dict(
+            robot_pos=state.robot.pos, robot_vel=state.robot.vel, goal=state.robot.goal,
+            human_pos=state.humans.pos, human_radius=state.humans.radius, visible=visible,
+            obs_humans=obs.humans, obs_mask=obs.human_mask,
+        )
+
+    def step_one(key, state, action):
+        k_step, _ = jax.random.split(key)  # as env.step splits it, so trajectories match evaluate()
+        return env.step_env(k_step, state, action, params)
+
+    def body(loop, t):
+        key, obs, state, carry, alive = loop
+        key, k_act, k_step = jax.random.split(key, 3)
+        carry, action = policy.act(carry, obs, jnp.equal(t, 0) & alive, k_act)
+        new_obs, new_state, reward, terminated, truncated, info = jax.vmap(step_one)(
+            jax.random.split(k_step, n_episodes), state, action)
+
+        def keep(new, old):
+            return jnp.where(alive.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+
+        state = jax.tree_util.tree_map(keep, new_state, state)
+        obs = jax.tree_util.tree_map(keep, new_obs, obs)
+        out = dict(snapshot(obs, state), alive=alive, reward=reward, outcome=info.outcome,
+                   terms=info.reward_terms)
+        return (key, obs, state, carry, alive & ~(terminated | truncated)), out
+
+    k_reset, k_loop = jax.random.split(key)
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, n_episodes), params)
+    first = snapshot(obs, state)
+    loop = (k_loop, obs, state, policy.initialize_carry(n_episodes), jnp.ones(n_episodes, bool))
+    _, outs = jax.lax.scan(body, loop, jnp.arange(n_steps))
+    return first, outs
+
+
+@functools.lru_cache(maxsize=None)
+def _record_jit():
+    import jax
+
+    return jax.jit(_record, static_argnums=(0, 1, 3, 5))
+
+
+def eval_key(seed: int):
+    """The key with which `tgrf_jax.evaluate.evaluate(env, policy, jax.random.key(seed), n)` (and so `tgrf-eval
+    --seed`) plays its episodes (its first batch): `record_episodes(env, policy, eval_key(seed), n)` replays them."""
+    import jax
+
+    return jax.random.fold_in(jax.random.key(seed), 0)
+
+
+def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label: str | None = None) -> list[Episode]:
+    """Play `n_episodes` episodes of `policy` in `env` (one jitted scan, batched) and return them as `Episode`s.
+
+    `policy` follows the `tgrf_jax.policies` interface (baselines or `LearnedPolicy`). Each episode runs until it
+    ends (success, collision or the time limit). Keys and step order are those of `tgrf_jax.evaluate.run_episodes`,
+    so the same key gives the same episodes; use `eval_key(seed)` to replay what `evaluate` / `tgrf-eval` played.
+    """
+    import jax
+
+    if int(n_episodes) < 1:
+        raise ValueError(f"n_episodes = {n_episodes} must be >= 1")
+    params = env.default_params if params is None else params
+    n_steps = int(round(float(params.time_limit) / float(params.dt)))
+    first, outs = jax.device_get(_record_jit()(env, policy, key, int(n_episodes), params, n_steps))
+    label = label or getattr(policy, "name", None) or type(policy).__name__
+    k = env.config.pred_horizon if env.config.uses_predictions else 0
+    episodes = []
+    for b in range(int(n_episodes)):
+        steps = int(outs["alive"][:, b].sum())
+        seq = lambda name: np.concatenate([first[name][b][None], outs[name][:steps, b]])  # noqa: E731
+        robot_pos = seq("robot_pos")
+        obs_humans = seq("obs_humans")
+        n = obs_humans.shape[1]
+        obs_pos = obs_humans[:, :, :2] + robot_pos[:, None]
+        pred = obs_humans[:, :, 2:].reshape(steps + 1, n, k, 2) + robot_pos[:, None, None] if k else None
+        episodes.append(Episode(
+            label=label, index=b, robot_pos=robot_pos, robot_vel=seq("robot_vel"), goal=np.asarray(first["goal"][b]),
+            human_pos=seq("human_pos"), human_radius=seq("human_radius"), visible=seq("visible").astype(bool),
+            obs_human_pos=obs_pos, obs_mask=seq("obs_mask").astype(bool), pred_pos=pred,
+            reward=np.asarray(outs["reward"][:steps, b], np.float64),
+            terms={f.name: np.asarray(getattr(outs["terms"], f.name)[:steps, b], np.float64)
+                   for f in dataclasses.fields(outs["terms"])},
+            outcomes=np.asarray(outs["outcome"][:steps, b]),
+            dt=float(params.dt), robot_radius=float(params.robot_radius), sensor_range=float(params.sensor_range),
+            d_disc=float(params.reward.d_disc), goal_tolerance=float(params.goal_tolerance), max_steps=n_steps,
+        ))
+    return episodes
+
+
+# ------------------------------------------------------------------------------------------------ drawing

@@ -1,0 +1,284 @@
+"""A sweep's compiled program and its placement: G runs with a leading run axis split over D devices.
+
+    state = stack([jit(trainer.init)(key_i, hparams_i) for each run])   # tgrf-train's init, run by run
+    chunk = jit(shard_map(vmap(trainer.run_updates)))   # n updates of all G runs, one compiled program
+                                                        # (a device holding one run: run_updates unbatched)
+
+The run axis is split over all devices (a `jax.sharding.Mesh` with one axis, "runs"; G is padded to a multiple
+of the device count with copies of the last run, and the padding is dropped from every result), across hosts too
+(multi-controller JAX). Inside `shard_map` each device vmaps over its own runs, so the runs never communicate.
+
+The batched program is compiled differently from the single-run one, so a run in a sweep agrees with its
+tgrf-train run up to float32 rounding, not bit for bit; so do different device counts. Bit-identical: a one-run
+sweep and the tgrf-train run, a resumed sweep and an uninterrupted one, and equal numbers of runs per device.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from typing import Any
+
+import numpy as np
+import yaml
+
+from tgrf_jax.config import ConfigError, TrainConfig, griddable_fields
+
+AXIS = "runs"  # mesh axis name of the run dimension
+
+
+def _host(tree):
+    """Device arrays -> host numpy (all processes get the full arrays, also when sharded over several hosts)."""
+    import jax
+    from jax.experimental import multihost_utils
+
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return np.asarray(jax.device_get(x))
+
+    return jax.tree_util.tree_map(one, tree)
+
+
+def _place(tree, sharding):
+    """Host arrays with a leading run axis -> global jax.Arrays split over the mesh (works across hosts)."""
+    import jax
+
+    def one(x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
+
+    return jax.tree_util.tree_map(one, tree)
+
+
+def _pad(tree, g_pad: int):
+    """Pad the leading run axis to g_pad with copies of the last run."""
+    def one(x):
+        x = np.asarray(x)
+        if x.shape[0] == g_pad:
+            return x
+        return np.concatenate([x, np.repeat(x[-1:], g_pad - x.shape[0], axis=0)], axis=0)
+
+    import jax
+
+    return jax.tree_util.tree_map(one, tree)
+
+
+def _stack(trees):
+    import jax
+
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *trees)
+
+
+def _take(tree, i):
+    import jax
+
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+def _per_run(f, n_batched: int | None = None):
+    """f over the leading (run) axis of the first `n_batched` arguments (default: all): vmapped, except where a
+    device holds a single run, which runs f itself (tgrf-train's unbatched program, without vmap's overheads,
+    e.g. a `lax.cond` turned into a select that evaluates both branches)."""
+    import jax
+
+    def g(*args):
+        k = len(args) if n_batched is None else n_batched
+        batched, rest = args[:k], args[k:]
+        if jax.tree_util.tree_leaves(batched)[0].shape[0] == 1:
+            out = f(*jax.tree_util.tree_map(lambda x: x[0], batched), *rest)
+            return jax.tree_util.tree_map(lambda x: x[None], out)
+        return jax.vmap(f, in_axes=(0,) * k + (None,) * len(rest))(*batched, *rest)
+
+    return g
+
+
+class SweepProgram:
+    """The compiled pieces of a sweep for one static configuration and one device mesh.
+
+    `chunk(state, n)` and `eval_stats(params, env_params, key, n_episodes)` take and return pytrees with a leading
+    run axis split over the mesh; inside `shard_map` each device vmaps over its own runs (or, holding one run, runs
+    the unbatched function), so the runs never communicate. `init_one(key, hparams)` is tgrf-train's single-run
+    init.
+    """
+
+    def __init__(self, config: TrainConfig, devices):
+        import jax
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+        from tgrf_jax.env import CrowdNavEnv
+        from tgrf_jax.evaluate import run_episodes
+        from tgrf_jax.train.policy import LearnedPolicy
+        from tgrf_jax.train.ppo import make_train
+
+        self.config = config
+        self.devices = tuple(devices)
+        self.mesh = Mesh(np.array(self.devices), (AXIS,))
+        self.sharding = NamedSharding(self.mesh, P(AXIS))
+        # the run axis takes the devices; a run's env shards (ppo.num_shards) are vmapped on its device
+        self.train = make_train(config, devices=None)
+        trainer = self.train.trainer
+        self.trainer = trainer
+        spec = P(AXIS)
+
+        def smap(f, n_in, replicated_last=False):
+            in_specs = tuple([spec] * n_in + ([P()] if replicated_last else []))
+            # check_vma off: the runs never communicate, and loops that start from replicated values (the shared
+            # evaluation key) would otherwise need explicit casts
+            return jax.shard_map(f, mesh=self.mesh, in_specs=in_specs, out_specs=spec, check_vma=False)
+
+        # Runs are initialised one at a time with tgrf-train's own jit(trainer.init) (bit-identical initial states),
+        # not with vmap(trainer.init): on XLA:CPU the vmapped init (batched LAPACK QR of the orthogonal
+        # initialisers) can deadlock at execution, every worker thread idle.
+        self.init_one = jax.jit(trainer.init)
+
+        def chunk(ts, n_updates):
+            return smap(_per_run(functools.partial(trainer.run_updates, n_updates=n_updates)), 1)(ts)
+
+        self.chunk = jax.jit(chunk, static_argnums=1, donate_argnums=0)
+        net = trainer.net
+        self.eval_env = CrowdNavEnv(dataclasses.replace(config.env, track_future_intrusion=True), config.reward)
+
+        def eval_stats(params, env_params, key, n_episodes):
+            def one(p, ep, k):
+                return run_episodes(self.eval_env, LearnedPolicy(net, p), k, n_episodes, ep)
+
+            return smap(_per_run(one, n_batched=2), 2, replicated_last=True)(params, env_params, key)
+
+        self.eval_stats = jax.jit(eval_stats, static_argnums=3)
+        self.compiled: dict[tuple, Any] = {}  # (n_updates, G_pad) -> AOT-compiled chunk
+
+    def compiled_chunk(self, state, n: int):
+        """(compiled chunk for `n` updates at this batch size, compile seconds or None if cached)."""
+        key = (n, int(np.shape(state.update)[0]))
+        if key in self.compiled:
+            return self.compiled[key], None
+        c0 = time.perf_counter()
+        self.compiled[key] = self.chunk.lower(state, n).compile()
+        return self.compiled[key], time.perf_counter() - c0
+
+
+_PROGRAMS: dict[tuple, SweepProgram] = {}
+
+
+def _static_signature(config: TrainConfig) -> str:
+    """Everything of a config except the griddable fields and the run section (which the trainer never reads)."""
+    data = config.to_dict()
+    for name in griddable_fields():
+        section, field = name.split(".", 1)
+        data[section].pop(field, None)
+    data.pop("run", None)
+    return yaml.safe_dump(data, sort_keys=True)
+
+
+def get_program(config: TrainConfig, devices) -> SweepProgram:
+    """One SweepProgram per (static config, devices) per process (repeated sweeps reuse compilations)."""
+    key = (_static_signature(config), tuple(d.id for d in devices))
+    if key not in _PROGRAMS:
+        _PROGRAMS[key] = SweepProgram(config, devices)
+    return _PROGRAMS[key]
+
+
+def barrier(name: str) -> None:
+    """Wait for every process (multi-host sweeps)."""
+    import jax
+
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
+def evaluate_runs(program: SweepProgram, runs, params, g_pad: int, episodes: int, seed: int) -> list[dict]:
+    """The final evaluation of every run in one batched program: per run the same episodes (keys) and env
+    parameters as `tgrf_jax.train.loop.evaluate_state` / `tgrf_jax.evaluate.evaluate` use for that run alone."""
+    import jax
+
+    from tgrf_jax.env import CrowdNavEnv
+    from tgrf_jax.evaluate import summarize
+
+    envs = [CrowdNavEnv(dataclasses.replace(r.config.env, track_future_intrusion=True), r.config.reward)
+            for r in runs]
+    env_params = _place(_pad(_stack([e.default_params for e in envs]), g_pad), program.sharding)
+    key = jax.random.fold_in(jax.random.key(seed), 0)  # `evaluate` with one batch of all episodes
+    stats = _host(program.eval_stats(params, env_params, key, episodes))
+    out = []
+    for i, r in enumerate(runs):
+        res = summarize(_take(stats, i))
+        out.append({"env": repr(CrowdNavEnv(r.config.env, r.config.reward)), "episodes": episodes, "seed": seed,
+                    "results": {"learned": res.to_dict()}})
+    return out
+
+
+class SweepBatch:
+    """The runner's `Program` for the runs of one sweep: per run the traced hyper-parameters and key that
+    tgrf-train derives from that run's config, stacked, padded and placed on the program's mesh."""
+
+    def __init__(self, runs, devices):
+        import jax
+
+        from tgrf_jax.train.ppo import hparams_from_config
+
+        self.runs = runs
+        configs = [r.config for r in runs]
+        self.num_runs = G = len(runs)
+        self.num_devices = D = len(devices)
+        self.g_pad = -(-G // D) * D
+        hps = [hparams_from_config(c) for c in configs]
+        shapes = [jax.tree_util.tree_map(lambda x: (np.shape(x), np.asarray(x).dtype), h) for h in hps]
+        struct0 = jax.tree_util.tree_structure(hps[0])
+        for r, h, s in zip(runs, hps, shapes):
+            if jax.tree_util.tree_structure(h) != struct0 or s != shapes[0]:
+                raise ConfigError(f"run {r.name}: its hyper-parameters have another structure than run "
+                                  f"{runs[0].name}'s; it cannot share the compiled program")
+        self.hparams = _stack(hps)
+        self.keys = _stack([jax.random.PRNGKey(c.run.seed) for c in configs])
+        self.program = get_program(configs[0], devices)
+        self.config = configs[0]
+        self.num_updates = self.program.trainer.num_updates
+        self.batch_size = self.config.ppo.batch_size
+
+    def _placed(self, host_state):
+        return _place(_pad(host_state, self.g_pad), self.program.sharding)
+
+    def init(self):
+        init = self.program.init_one
+        return self._placed(_stack([_host(init(self.keys[i], _take(self.hparams, i))) for i in range(self.num_runs)]))
+
+    def restore(self, checkpointer, step: int):
+        import jax
+
+        from tgrf_jax.train.checkpoint import CheckpointError
+
+        template = jax.eval_shape(jax.vmap(self.program.trainer.init), self.keys, self.hparams)
+        host_state = _host(checkpointer.restore(template, step))
+        updates = sorted(set(np.asarray(host_state.update).tolist()))
+        if len(updates) != 1:
+            raise CheckpointError(f"checkpoint {str(checkpointer.directory / str(step))!r} holds runs at "
+                                  f"different updates {updates}")
+        return self._placed(host_state), updates[0]
+
+    def compiled_chunk(self, state, n: int):
+        return self.program.compiled_chunk(state, n)
+
+    def run_metrics(self, metrics) -> list[dict]:
+        metrics = _host(metrics)
+        return [{k: float(v[i]) for k, v in metrics.items()} for i in range(self.num_runs)]
+
+    def host_state(self, state):
+        return _take(_host(state), slice(0, self.num_runs))
+
+    def evaluate(self, state, episodes: int, seed: int) -> list[dict]:
+        return evaluate_runs(self.program, self.runs, state.params, self.g_pad, episodes, seed)
+
+    def describe(self, state) -> str:
+        import jax
+
+        c, p = self.config, self.config.ppo
+        n_params = self.program.trainer.net.num_params(_take(_host(state.params), 0))
+        pad = f", padded to {self.g_pad}" if self.g_pad != self.num_runs else ""
+        return (f"{self.num_runs} runs{pad} on {self.num_devices} {jax.devices()[0].platform} device(s), "
+                f"{self.g_pad // self.num_devices} run(s) per device | {self.program.trainer.env} | "
+                f"{c.network.name}/{c.network.size} ({n_params:,} params) | {p.num_envs} envs x {p.num_steps} "
+                f"steps, {self.num_updates} updates = {self.num_updates * p.batch_size:,} env steps per run")

@@ -1,0 +1,152 @@
+"""`run_sweep`: the runs of a `SweepSpec` trained together by the runner (`tgrf_jax.train.runner`).
+
+Sweep directory:
+    sweep.yaml             the grid: axes, seeds, base config, and the run list (name, grid point, seed, values)
+    config.yaml            the resolved base config (file + --set; grid values not applied)
+    metrics.csv            learning curves of all runs, long format: run, point, seed, grid values + tgrf-train's
+                           CSV fields (one row per run per chunk)
+    progress.log           the progress lines printed to stdout
+    checkpoints/<update>/  orbax checkpoints of the stacked TrainState of all G runs (no padding)
+    runs/<name>/           one tgrf-train run directory per run: config.yaml, metrics.csv, eval.json and the final
+                           checkpoint (so `tgrf-eval runs/<name>` works)
+    evals.csv              final evaluation of every run (SPEC A.4 metrics + final training return/success)
+    summary.csv / .md      mean and std over seeds for every grid point
+    heatmap.png            success rate and ITR over two gridded parameters (grid_metrics.png with one axis)
+    learning_curves.png    training return and success rate per grid point, mean over seeds with a +-std band
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import pathlib
+from typing import Any, Callable
+
+import yaml
+
+from tgrf_jax.config import ConfigError, TrainConfig
+from tgrf_jax.sweep.grid import SWEEP_FILE, SweepSpec, _fmt_value, load_sweep
+from tgrf_jax.sweep.program import SweepBatch, barrier
+from tgrf_jax.sweep.report import RUNS_DIR, format_summary_markdown, plot_sweep, write_results
+from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+from tgrf_jax.train.progress import CSV_FIELDS, CsvWriter, LogFile, ProgressPrinter, run_rows
+from tgrf_jax.train.runner import train_runs
+
+CONFIG_FILE = "config.yaml"
+METRICS_FILE = "metrics.csv"
+CHECKPOINT_DIR = "checkpoints"
+LOG_FILE = "progress.log"
+
+
+@dataclasses.dataclass
+class SweepResult:
+    sweep_dir: pathlib.Path
+    spec: SweepSpec
+    state: Any  # stacked TrainState of the G runs (host numpy, no padding)
+    updates: int
+    train_seconds: float
+    num_devices: int
+    evals: list | None  # per run: the eval.json payload (or None when not evaluated)
+    compiled_chunks: int = 0
+
+
+def default_sweep_dir(config: TrainConfig, root="runs") -> pathlib.Path:
+    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    return pathlib.Path(root) / f"{stamp}_sweep_{config.run.name}"
+
+
+def run_sweep(
+    spec: SweepSpec | None,
+    sweep_dir,
+    *,
+    resume: bool = False,
+    log: Callable[[str], None] = print,
+    stop_after_updates: int | None = None,
+    devices=None,
+    num_devices: int | None = None,
+    export_checkpoints: bool = True,
+) -> SweepResult:
+    """Train every run of `spec` in `sweep_dir` as one batch (or resume the sweep there: `spec=None, resume=True`).
+
+    `devices` (default: all, `jax.devices()`; or the first `num_devices` of them) carry the run axis.
+    `stop_after_updates` ends early, as an interruption would (for tests)."""
+    import jax
+
+    sweep_dir = pathlib.Path(sweep_dir)
+    main = jax.process_index() == 0
+    ckpt_dir = sweep_dir / CHECKPOINT_DIR
+    if resume:
+        loaded = load_sweep(sweep_dir)
+        if spec is not None and spec.to_dict() != loaded.to_dict():
+            raise ConfigError(f"{str(sweep_dir)!r} holds a different sweep than the one given")
+        spec = loaded
+        if not ckpt_dir.is_dir():
+            raise CheckpointError(f"cannot resume: checkpoint directory {str(ckpt_dir)!r} does not exist")
+    elif (sweep_dir / SWEEP_FILE).exists():
+        raise ConfigError(f"sweep directory {str(sweep_dir)!r} already holds a sweep; use --resume or another --out")
+    if devices is None:
+        devices = jax.devices()
+        if num_devices is not None:
+            if not 1 <= num_devices <= len(devices):
+                raise ConfigError(f"--devices {num_devices}: allowed 1..{len(devices)} (devices: {len(devices)})")
+            devices = devices[:num_devices]
+    runs = spec.runs()
+    run_dirs = [sweep_dir / RUNS_DIR / r.name for r in runs]
+
+    barrier("tgrf_sweep_checked")  # every process has checked the directory before process 0 writes to it
+    if not resume and main:
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        (sweep_dir / CONFIG_FILE).write_text(spec.base_config.to_yaml())
+        (sweep_dir / SWEEP_FILE).write_text(yaml.safe_dump(spec.to_dict(), sort_keys=False))
+        for r, d in zip(runs, run_dirs):
+            d.mkdir(parents=True, exist_ok=True)
+            (d / CONFIG_FILE).write_text(r.config.to_yaml())
+    barrier("tgrf_sweep_written")
+
+    say = LogFile(sweep_dir / LOG_FILE, log, enabled=main)
+    program = SweepBatch(runs, devices)
+    run_cfg = runs[0].config.run
+    ckpt = Checkpointer(ckpt_dir, keep=run_cfg.keep_checkpoints, create=not resume)
+    say(f"sweep of {len(runs)} runs ({len(spec.points())} grid points x {len(spec.seeds)} seeds)")
+    for a in spec.axes:
+        say(f"  grid {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")
+    say(f"  seeds: {', '.join(map(str, spec.seeds))}")
+    say("  progress: steps per run; steps/s, returns and outcome rates over all runs together")
+    writers = []
+    if main:  # process 0 writes the files
+        long_fields = ["run", "point", "seed"] + [a.name for a in spec.axes] + list(CSV_FIELDS)
+        columns = [dict(run=r.name, point=r.point, seed=r.seed, **r.values) for r in runs]
+        writers.append(CsvWriter(sweep_dir / METRICS_FILE, lambda m: [dict(row, **c) for row, c in
+                                                                       zip(m.runs, columns)], long_fields))
+        writers += [CsvWriter(d / METRICS_FILE, run_rows(i)) for i, d in enumerate(run_dirs)]
+        writers.append(ProgressPrinter(say))
+    try:
+        out = train_runs(program, ckpt, run_cfg, resume=resume, progress_fns=writers,
+                         run_dirs=run_dirs if main else (), say=say, stop_after_updates=stop_after_updates)
+    finally:
+        for w in writers:
+            getattr(w, "close", lambda: None)()
+        ckpt.close()
+
+    host_state = program.host_state(out.state)
+    result = SweepResult(sweep_dir, spec, host_state, out.updates, out.train_seconds, program.num_devices,
+                         out.evals, out.compiled_chunks)
+    if out.updates == program.num_updates:
+        if export_checkpoints:  # so that tgrf-eval / tgrf-render work on runs/<name>
+            for i, d in enumerate(run_dirs):
+                run_ckpt = Checkpointer(d / CHECKPOINT_DIR, keep=run_cfg.keep_checkpoints)
+                run_ckpt.save(out.updates, jax.tree_util.tree_map(lambda x: x[i], host_state))
+                run_ckpt.close()
+        if main:
+            rows = write_results(sweep_dir, spec, out.evals)
+            say(format_summary_markdown(spec, rows))
+            try:
+                plot_sweep(sweep_dir, spec, rows)
+            except Exception as e:  # a plotting failure must not lose a finished sweep
+                say(f"warning: could not plot: {type(e).__name__}: {e}")
+        G, batch, trained = len(runs), program.batch_size, out.updates - out.start
+        say(f"done: {G} runs x {out.updates} updates = {G * out.updates * batch:,} env steps; this process trained "
+            f"{trained} updates in {out.train_seconds:.1f} s ({G * trained * batch / max(out.train_seconds, 1e-9):,.0f}"
+            f" steps/s over all runs, compilation excluded); sweep dir {sweep_dir}")
+    say.close()
+    return result
