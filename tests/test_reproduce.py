@@ -10,7 +10,7 @@ import yaml
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import report, runner
 from tgrf_jax.experiments import spec as spec_lib
-from tgrf_jax.experiments.cli import main
+from tgrf_jax.cli.reproduce import main
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")

@@ -111,7 +111,7 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     if state == "stale":
         say(f"  {row.name}: stopped before its first checkpoint; starting it again")
         shutil.rmtree(row_dir)
-    cmd = [sys.executable, "-m", "tgrf_jax.sweep"]
+    cmd = [sys.executable, "-m", "tgrf_jax.cli.sweep"]
     cmd += ["--resume", str(row_dir)] if state == "resumable" else sweep_args(exp, row) + ["--out", str(row_dir)]
     prov_path = row_dir / PROVENANCE_FILE
     prov = json.loads(prov_path.read_text()) if prov_path.is_file() else {"wall_s": 0.0, "invocations": []}
