@@ -318,6 +318,9 @@ class RunConfig:
     keep_checkpoints: int = spec(3, low=1, doc="checkpoints kept on disk")
     eval_episodes: int = spec(500, low=0, doc="episodes of the final evaluation (0: skip)")
     eval_seed: int = spec(0, low=0, high=2**31 - 1)
+    eval_every: int = spec(0, low=0, doc="updates between test evaluations during training (learning curves under "
+                           "test conditions, eval_curve.csv); 0: none")
+    curve_episodes: int = spec(100, low=1, high=100_000, doc="test episodes of each evaluation during training")
 
     def __post_init__(self):
         check_fields(self, "run")

@@ -79,7 +79,13 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
     return jax.lax.while_loop(cond, body, loop)[-1]
 
 
-_run_episodes_jit = jax.jit(run_episodes, static_argnums=(0, 1, 3))
+_run_episodes_static = jax.jit(run_episodes, static_argnums=(0, 1, 3))  # a hashable policy object
+_run_episodes_traced = jax.jit(run_episodes, static_argnums=(0, 3))  # a policy pytree (traced parameters)
+
+
+def _run_episodes_jit(env, policy, key, n_episodes, params):
+    run = _run_episodes_traced if hasattr(policy, "tree_flatten") else _run_episodes_static
+    return run(env, policy, key, n_episodes, params)
 
 # Episodes evaluated at once by default: enough to fill any CPU or GPU, small enough (a few hundred MB of
 # state for 20 humans) that a million-episode evaluation runs in bounded memory.

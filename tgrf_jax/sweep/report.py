@@ -11,6 +11,7 @@ import warnings
 import numpy as np
 
 from tgrf_jax.sweep.grid import GridAxis, SweepSpec, _fmt_value
+from tgrf_jax.train.curves import plot_curves, read_curve
 
 METRICS_FILE = "metrics.csv"
 EVALS_FILE = "evals.csv"
@@ -149,6 +150,14 @@ def plot_sweep(sweep_dir, spec: SweepSpec, summary: list[dict]) -> list[pathlib.
         out.append(plot_heatmap(sweep_dir / HEATMAP_FILE, spec, summary, multi[0], multi[1], metrics))
     elif len(multi) == 1:
         out.append(plot_grid_metrics(sweep_dir / GRID_PLOT_FILE, spec, summary, multi[0], metrics))
+    curves = read_curve(sweep_dir / "eval_curves.csv")
+    if curves:
+        groups: dict[str, dict[str, list[dict]]] = {}
+        for r in spec.runs():
+            label = ", ".join(f"{k.split('.', 1)[1]}={_fmt_value(v)}" for k, v in r.values.items()) or "all runs"
+            groups.setdefault(label, {})[r.name] = [row for row in curves if row["run"] == r.name]
+        out.append(plot_curves({k: list(v.values()) for k, v in groups.items()}, sweep_dir / "eval_curves.png",
+                               title="test episodes during training (mean over seeds, band: ± std)"))
     return out
 
 

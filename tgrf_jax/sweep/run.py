@@ -10,6 +10,8 @@ Sweep directory:
     runs/<name>/           one tgrf-train run directory per run: config.yaml, metrics.csv, eval.json and the final
                            checkpoint (so `tgrf-eval runs/<name>` works)
     evals.csv              final evaluation of every run (SPEC A.4 metrics + final training return/success)
+    eval_curves.csv        with run.eval_every: test-episode metrics of every run during training (long format)
+    eval_curves.png        those curves (SR, NT, PL, ITR) per grid point, mean over seeds with a +-std band
     summary.csv / .md      mean and std over seeds for every grid point
     heatmap.png            success rate and ITR over two gridded parameters (grid_metrics.png with one axis)
     learning_curves.png    training return and success rate per grid point, mean over seeds with a +-std band
@@ -29,6 +31,7 @@ from tgrf_jax.sweep.grid import SWEEP_FILE, SweepSpec, _fmt_value, load_sweep
 from tgrf_jax.sweep.program import SweepBatch, barrier
 from tgrf_jax.sweep.report import RUNS_DIR, format_summary_markdown, plot_sweep, write_results
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+from tgrf_jax.train.curves import CURVE_FIELDS, EVAL_CURVE_CSV, PeriodicEvaluation
 from tgrf_jax.train.progress import CSV_FIELDS, CsvWriter, LogFile, ProgressPrinter, run_rows
 from tgrf_jax.train.runner import train_runs
 
@@ -36,6 +39,7 @@ CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "progress.log"
+CURVES_FILE = "eval_curves.csv"
 
 
 @dataclasses.dataclass
@@ -120,11 +124,22 @@ def run_sweep(
                                                                        zip(m.runs, columns)], long_fields))
         writers += [CsvWriter(d / METRICS_FILE, run_rows(i)) for i, d in enumerate(run_dirs)]
         writers.append(ProgressPrinter(say))
+    curve_writers, state_fns = [], []
+    if run_cfg.eval_every:
+        if main:
+            curve_fields = ["run", "point", "seed"] + [a.name for a in spec.axes] + list(CURVE_FIELDS)
+            curve_writers.append(CsvWriter(sweep_dir / CURVES_FILE, lambda rows: [dict(row, **c) for row, c in
+                                                                                zip(rows, columns)], curve_fields))
+            curve_writers += [CsvWriter(d / EVAL_CURVE_CSV, lambda rows, i=i: rows[i:i + 1], CURVE_FIELDS)
+                              for i, d in enumerate(run_dirs)]
+        state_fns.append(PeriodicEvaluation(program, run_cfg.eval_every, run_cfg.curve_episodes, run_cfg.eval_seed,
+                                            curve_writers, say))
     try:
-        out = train_runs(program, ckpt, run_cfg, resume=resume, progress_fns=writers,
-                         run_dirs=run_dirs if main else (), say=say, stop_after_updates=stop_after_updates)
+        out = train_runs(program, ckpt, run_cfg, resume=resume, progress_fns=writers, state_fns=state_fns,
+                         cut_every=[run_cfg.eval_every] if state_fns else [], run_dirs=run_dirs if main else (),
+                         say=say, stop_after_updates=stop_after_updates)
     finally:
-        for w in writers:
+        for w in writers + curve_writers:
             getattr(w, "close", lambda: None)()
         ckpt.close()
 

@@ -24,6 +24,9 @@ import numpy as np
 from tgrf_jax.config import ConfigError, TrainConfig, load_yaml
 from tgrf_jax.train import shards
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+from tgrf_jax.train.curves import (
+    CURVE_FIELDS, EVAL_CURVE_CSV, EVAL_CURVE_PNG, PeriodicEvaluation, plot_curves, read_curve,
+)
 from tgrf_jax.train.ppo import TrainState, make_train
 from tgrf_jax.train.progress import CsvWriter, LogFile, ProgressPrinter, TensorBoardWriter, run_rows
 from tgrf_jax.train.runner import EVAL_FILE, train_runs
@@ -85,7 +88,8 @@ class SoloProgram:
         return state
 
     def evaluate(self, state, episodes: int, seed: int) -> list[dict]:
-        return [evaluate_state(self.config, state, episodes, seed)]
+        # the trainer's own network: one compiled evaluation for every checkpoint of the run
+        return [evaluate_state(self.config, state, episodes, seed, net=self.train.trainer.net)]
 
     def describe(self, state) -> str:
         t, p = self.train.trainer, self.config.ppo
@@ -131,13 +135,19 @@ def train_run(
     ckpt = Checkpointer(ckpt_dir, keep=config.run.keep_checkpoints, create=not resume)
     writers = [CsvWriter(run_dir / METRICS_FILE, run_rows(0)), TensorBoardWriter(run_dir / "tb"),
                ProgressPrinter(say)]
+    curve_writers = []
+    if config.run.eval_every:
+        curve_writers.append(CsvWriter(run_dir / EVAL_CURVE_CSV, lambda rows: rows, CURVE_FIELDS))
+    state_fns = [PeriodicEvaluation(program, config.run.eval_every, config.run.curve_episodes, config.run.eval_seed,
+                                    curve_writers, say)] if curve_writers else []
     if resume:
         say(f"resuming {run_dir}")
     try:
-        out = train_runs(program, ckpt, config.run, resume=resume, progress_fns=writers, run_dirs=[run_dir],
-                         say=say, stop_after_updates=stop_after_updates)
+        out = train_runs(program, ckpt, config.run, resume=resume, progress_fns=writers, state_fns=state_fns,
+                         cut_every=[config.run.eval_every] if state_fns else [], run_dirs=[run_dir], say=say,
+                         stop_after_updates=stop_after_updates)
     finally:
-        for w in writers:
+        for w in writers + curve_writers:
             getattr(w, "close", lambda: None)()
         ckpt.close()
 
@@ -149,6 +159,9 @@ def train_run(
 
             plot_learning_curve(run_dir / METRICS_FILE, run_dir / CURVE_FILE,
                                 title=f"{config.run.name}: {program.train.trainer.env}")
+            if config.run.eval_every:
+                plot_curves({config.run.name: [read_curve(run_dir / EVAL_CURVE_CSV)]}, run_dir / EVAL_CURVE_PNG,
+                            title=f"{config.run.name}: test episodes during training")
         except Exception as e:  # a plotting failure must not lose a finished run
             say(f"warning: could not plot the learning curve: {e}")
         if result.eval is not None:
@@ -179,8 +192,9 @@ def restore_run(run_dir, step: int | None = None) -> tuple[TrainConfig, TrainSta
     return config, state
 
 
-def evaluate_state(config: TrainConfig, state: TrainState, episodes: int, seed: int, baselines=()) -> dict:
-    """SPEC A.4 metrics of the trained (deterministic) policy and optional baselines on the run's env/reward."""
+def evaluate_state(config: TrainConfig, state: TrainState, episodes: int, seed: int, baselines=(), net=None) -> dict:
+    """SPEC A.4 metrics of the trained (deterministic) policy and optional baselines on the run's env/reward.
+    `net` (default: built from the config) keys the compiled evaluation: pass the same one to reuse it."""
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.evaluate import evaluate
     from tgrf_jax.policies import baseline
@@ -190,7 +204,8 @@ def evaluate_state(config: TrainConfig, state: TrainState, episodes: int, seed: 
     env = CrowdNavEnv(config.env, config.reward)
     key = jax.random.key(seed)
     params = jax.device_get(state.params)  # off the shards' devices: evaluation runs on the default device
-    results = {"learned": evaluate(env, LearnedPolicy(make_network_for(config), params), key, episodes)}
+    net = make_network_for(config) if net is None else net
+    results = {"learned": evaluate(env, LearnedPolicy(net, params), key, episodes)}
     for name in baselines:
         results[name] = evaluate(env, baseline(name), key, episodes)
     return {"env": repr(env), "episodes": episodes, "seed": seed,

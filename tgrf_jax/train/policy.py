@@ -7,12 +7,20 @@ import jax
 from tgrf_jax.nets import ActorCritic
 
 
+@jax.tree_util.register_pytree_node_class
 class LearnedPolicy:
     """`act` returns the Gaussian mean (deterministic, as the reference's test) or a sample.
 
-    Hashed by identity: `evaluate` jits with the policy as a static argument, so each instance (one set of
-    parameters) compiles once and different parameters never share a stale cache entry.
+    A pytree whose leaves are the parameters (the network is static): `evaluate` traces the parameters, so every
+    checkpoint of a run (periodic evaluations, tgrf-eval) runs the same compiled program and gets the same numbers.
     """
+
+    def tree_flatten(self):
+        return (self.params,), (self.net, self.deterministic)
+
+    @classmethod
+    def tree_unflatten(cls, static, leaves):
+        return cls(static[0], leaves[0], deterministic=static[1])
 
     def __init__(self, net: ActorCritic, params, deterministic: bool = True):
         self.net = net
@@ -21,11 +29,6 @@ class LearnedPolicy:
 
     def __repr__(self):
         return f"LearnedPolicy({self.net.name}/{self.net.size}, deterministic={self.deterministic})"
-
-    __hash__ = object.__hash__
-
-    def __eq__(self, other):
-        return self is other
 
     def initialize_carry(self, batch_size: int):
         return self.net.initialize_carry(batch_size)

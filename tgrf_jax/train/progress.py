@@ -129,7 +129,7 @@ class CsvWriter:
             w = csv.DictWriter(f, fieldnames=self.fields)
             w.writeheader()
             w.writerows(rows)
-        return max((float(r["wall_s"]) for r in rows), default=0.0)
+        return max((float(r.get("wall_s") or 0.0) for r in rows), default=0.0)
 
     def close(self) -> None:
         if self.file is not None:

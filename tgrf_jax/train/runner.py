@@ -4,7 +4,7 @@
 `train_runs`; they differ only in the `Program` (where the runs and their env shards are placed) and in the
 `progress_fn`s they plug in (CSV files, TensorBoard, the progress line). A `progress_fn(step, metrics)` is called
 after every chunk with the env steps per run and a `ChunkMetrics`; a `state_fn(update, state)` with the program's
-state (where a periodic evaluation would go).
+state (the periodic test evaluation of `tgrf_jax.train.curves`).
 
 Chunk boundaries depend only on absolute update counts (every `run.log_every` updates, cut at checkpoint
 multiples and at the end), so a resumed run executes exactly the same chunks as an uninterrupted one and ends
@@ -50,7 +50,7 @@ class Program(Protocol):
 
 def chunk_plan(start: int, total: int, log_every: int, *cut_every: int) -> list[int]:
     """Chunk lengths from update `start` to `total`: at most log_every, never crossing a multiple of log_every or
-    of any `cut_every` period (checkpoints; a periodic evaluation would add its own)."""
+    of any `cut_every` period (checkpoints, periodic evaluations)."""
     plan, u = [], start
     while u < total:
         n = min([total - u] + [p - u % p for p in (log_every, *cut_every)])
@@ -98,7 +98,8 @@ def train_runs(
             raise CheckpointError(f"checkpoint {str(checkpointer.directory / str(step))!r} holds update {start}, "
                                   f"not {step}")
         # the one place where files written after the checkpoint are cut back to it
-        wall_offset = max([fn.truncate(start) for fn in progress_fns if hasattr(fn, "truncate")], default=0.0)
+        wall_offset = max([fn.truncate(start) for fn in (*progress_fns, *state_fns) if hasattr(fn, "truncate")],
+                          default=0.0)
         say(f"resumed at update {start}/{total} ({start * batch:,} env steps{' per run' if G > 1 else ''})")
     else:
         state, start, wall_offset = program.init(), 0, 0.0

@@ -1,0 +1,71 @@
+"""Learning curves under test conditions (run.eval_every): rows, resume, tgrf-eval agreement, sweeps."""
+
+import csv
+import json
+import pathlib
+
+import pytest
+
+from tgrf_jax.cli import eval_main
+from tgrf_jax.config import TrainConfig
+from tgrf_jax.train.curves import CURVE_METRICS
+from tgrf_jax.train.loop import train_run
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = str(ROOT / "configs" / "tiny.yaml")
+CURVE_SETS = ["run.eval_every=4", "run.curve_episodes=6", "run.eval_episodes=0"]
+
+
+def read(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def curve_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("curve") / "run"
+    train_run(TrainConfig.from_yaml(TINY, CURVE_SETS), out, log=lambda m: None)
+    return out
+
+
+def test_test_episodes_every_eval_every_updates(curve_run):
+    rows = read(curve_run / "eval_curve.csv")
+    assert [int(r["update"]) for r in rows] == [4, 8, 12]
+    assert [int(r["env_steps"]) for r in rows] == [512, 1024, 1536]
+    for r in rows:
+        assert int(r["episodes"]) == 6 and 0.0 <= float(r["success_rate"]) <= 1.0
+        rates = sum(float(r[k]) for k in ("success_rate", "collision_rate", "timeout_rate"))
+        assert rates == pytest.approx(1.0)
+    assert (curve_run / "eval_curve.png").stat().st_size > 10_000
+
+
+def test_curve_point_equals_tgrf_eval_of_the_same_checkpoint(curve_run, tmp_path):
+    out = tmp_path / "eval.json"
+    assert eval_main([str(curve_run), "--step", "8", "--episodes", "6", "--seed", "0", "--out", str(out)]) == 0
+    evaluated = json.loads(out.read_text())["results"]["learned"]
+    row = next(r for r in read(curve_run / "eval_curve.csv") if r["update"] == "8")
+    for k in CURVE_METRICS:
+        expected = evaluated[k]
+        assert (row[k] == "nan") if expected is None else float(row[k]) == pytest.approx(expected, rel=1e-12), k
+
+
+def test_resumed_run_has_the_same_curve(curve_run, tmp_path):
+    out = tmp_path / "run"
+    config = TrainConfig.from_yaml(TINY, CURVE_SETS)
+    train_run(config, out, log=lambda m: None, stop_after_updates=6)
+    assert [r["update"] for r in read(out / "eval_curve.csv")] == ["4"]
+    train_run(config, out, resume=True, log=lambda m: None)
+    assert read(out / "eval_curve.csv") == read(curve_run / "eval_curve.csv")
+
+
+def test_sweep_writes_curves_of_every_run(tmp_path):
+    from tgrf_jax.sweep import SweepSpec, run_sweep
+
+    spec = SweepSpec.create(TINY, ["reward.scheme=tgrf,crowdnav_pp"], 1, CURVE_SETS)
+    run_sweep(spec, tmp_path / "sweep", log=lambda m: None)
+    rows = read(tmp_path / "sweep" / "eval_curves.csv")
+    assert sorted((r["reward.scheme"], r["update"]) for r in rows) == sorted(
+        (s, u) for s in ("tgrf", "crowdnav_pp") for u in ("4", "8", "12"))
+    for run in {r["run"] for r in rows}:
+        assert len(read(tmp_path / "sweep" / "runs" / run / "eval_curve.csv")) == 3
+    assert (tmp_path / "sweep" / "eval_curves.png").stat().st_size > 10_000
