@@ -72,7 +72,7 @@ def test_bad_experiment_files_are_rejected_naming_the_field(tmp_path, changes, m
 
 def test_cli_errors(tmp_path, capsys):
     assert main(["nosuch"]) == 2
-    assert "unknown experiment 'nosuch'; experiments: sensitivity, table1, table2" in capsys.readouterr().err
+    assert f"unknown experiment 'nosuch'; experiments: {', '.join(spec_lib.available())}" in capsys.readouterr().err
     assert main([str(tmp_path)]) == 2
     assert "is a directory" in capsys.readouterr().err
     path = write_experiment(tmp_path / "exp.yaml")
