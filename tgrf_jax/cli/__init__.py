@@ -1,10 +1,33 @@
-"""The command-line tools: tgrf-train, tgrf-eval, tgrf-sweep, tgrf-render and tgrf-reproduce (one module each;
-`common` holds the shared config / `--set` / run-directory arguments and the process setup)."""
+"""The command-line tools: tgrf-train, tgrf-eval, tgrf-sweep, tgrf-render and tgrf-reproduce, one module each with
+its `main` (`common` holds the shared config / `--set` / run-directory arguments and the process setup). The
+functions below import their tool on call, so `python -m tgrf_jax.cli.<tool>` runs a module not imported before."""
 
-from tgrf_jax.cli.eval import main as eval_main
-from tgrf_jax.cli.render import main as render_main
-from tgrf_jax.cli.reproduce import main as reproduce_main
-from tgrf_jax.cli.sweep import main as sweep_main
-from tgrf_jax.cli.train import main as train_main
 
-__all__ = ["eval_main", "render_main", "reproduce_main", "sweep_main", "train_main"]
+def train_main(argv=None) -> int:
+    from tgrf_jax.cli.train import main
+
+    return main(argv)
+
+
+def eval_main(argv=None) -> int:
+    from tgrf_jax.cli.eval import main
+
+    return main(argv)
+
+
+def sweep_main(argv=None) -> int:
+    from tgrf_jax.cli.sweep import main
+
+    return main(argv)
+
+
+def render_main(argv=None) -> int:
+    from tgrf_jax.cli.render import main
+
+    return main(argv)
+
+
+def reproduce_main(argv=None) -> int:
+    from tgrf_jax.cli.reproduce import main
+
+    return main(argv)
