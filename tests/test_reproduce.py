@@ -1,6 +1,7 @@
 """tgrf-reproduce: experiment files, the resumable row runner and the paper-layout report."""
 
 import csv
+import json
 import math
 import pathlib
 
@@ -124,7 +125,10 @@ def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
     exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml"))).shrunk(seeds=1)
     out = tmp_path / "out"
     lines = []
-    assert runner.reproduce(exp, out, log=lines.append) == 0
+    assert runner.reproduce(exp, out, log=lines.append, export_to=tmp_path / "pretrained") == 0
+    for scheme in ("crowdnav_pp", "tgrf"):
+        meta = json.loads((tmp_path / "pretrained" / f"exp-mlp-{scheme}" / "meta.json").read_text())
+        assert meta["reward.scheme"] == scheme and meta["seed"] == 0 and 0.0 <= meta["test"]["success_rate"] <= 1.0
     with open(out / "report.csv", newline="") as f:
         records = {r["value"]: r for r in csv.DictReader(f)}
     assert set(records) == {"crowdnav_pp", "tgrf"}

@@ -33,12 +33,31 @@ class Scenario:
     env: EnvConfig
     reward: RewardConfig
     run_dir: pathlib.Path | None = None
-    config: TrainConfig | None = None  # the run's config, with a run directory
+    config: TrainConfig | None = None  # the run's (or pretrained policy's) config
+    pretrained: str | None = None  # a pretrained policy's name or directory
+    params: dict | None = None  # its network parameters
 
 
-def scenario(source: str | None, overrides: list[str], tool: str) -> Scenario:
-    """Resolve RUN_DIR|CONFIG plus `--set` (only env.* and reward.* apply); raises ConfigError."""
+def add_pretrained_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--pretrained", metavar="NAME|DIR",
+                        help="a trained policy shipped with tgrf-jax (see tgrf_jax.pretrained.available()) or "
+                        "exported to a directory, played on its own env/reward config")
+
+
+def scenario(source: str | None, overrides: list[str], tool: str, pretrained: str | None = None) -> Scenario:
+    """Resolve RUN_DIR|CONFIG (or a pretrained policy) plus `--set` (only env.* and reward.* apply); raises
+    ConfigError."""
     bad = [o for o in overrides if o.split(".", 1)[0] not in ("env", "reward")]
+    if pretrained is not None:
+        from tgrf_jax import pretrained as pretrained_lib
+
+        if source is not None:
+            raise ConfigError(f"--pretrained plays its own config; give no RUN_DIR|CONFIG (got {source!r})")
+        if bad:
+            raise ConfigError(f"with --pretrained only env.* and reward.* can be overridden, not {bad}")
+        config, params, _ = pretrained_lib.load(pretrained)
+        config = TrainConfig.from_dict(apply_overrides(config.to_dict(), overrides))
+        return Scenario(config.env, config.reward, None, config, pretrained, params)
     if source is not None and pathlib.Path(source).is_dir():
         from tgrf_jax.train.loop import load_run_config
 

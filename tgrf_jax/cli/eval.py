@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from tgrf_jax.cli.common import add_config_args, error, scenario, start, write_json
+from tgrf_jax.cli.common import add_config_args, add_pretrained_arg, error, scenario, start, write_json
 from tgrf_jax.config import ConfigError
 
 
@@ -24,6 +24,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=500)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to evaluate; default: latest")
+    add_pretrained_arg(p)
     p.add_argument("--out", help="write the metrics as JSON to this file")
     return p
 
@@ -33,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.episodes < 1:
             raise ConfigError(f"--episodes = {args.episodes} must be >= 1")
-        sc = scenario(args.config, args.overrides, "tgrf-eval")
+        sc = scenario(args.config, args.overrides, "tgrf-eval", args.pretrained)
         if args.step is not None and sc.run_dir is None:
             raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
     except ConfigError as e:
@@ -43,9 +44,15 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     from tgrf_jax.train.checkpoint import CheckpointError
-    from tgrf_jax.train.loop import evaluate_state, format_eval, restore_run
+    from tgrf_jax.train.loop import evaluate_params, evaluate_state, format_eval, restore_run
 
-    if sc.run_dir is not None:
+    if sc.params is not None:
+        print(f"pretrained {sc.pretrained} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}",
+              flush=True)
+        t0 = time.perf_counter()
+        payload = evaluate_params(sc.config, sc.params, args.episodes, args.seed, baselines=args.policy or ())
+        payload.update(pretrained=sc.pretrained)
+    elif sc.run_dir is not None:
         try:
             _, state = restore_run(sc.run_dir, args.step)
         except (CheckpointError, ConfigError) as e:

@@ -9,7 +9,7 @@ import pathlib
 import sys
 import time
 
-from tgrf_jax.cli.common import add_config_args, error, scenario, start
+from tgrf_jax.cli.common import add_config_args, add_pretrained_arg, error, scenario, start
 from tgrf_jax.config import ConfigError
 
 POLICY_CHOICES = ("straight", "orca")
@@ -29,6 +29,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0,
                    help="episode i is episode i of tgrf-eval --seed S with as many episodes (default 0)")
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to render; default latest")
+    add_pretrained_arg(p)
     p.add_argument("--fps", type=float, default=8.0, help="GIF/MP4 frames per second (default 8 = 2x real time)")
     p.add_argument("--dpi", type=int, default=90, help="frame resolution (default 90: 648 x 720 pixels)")
     p.add_argument("--stride", type=int, default=1, help="draw every STRIDE-th step (default 1)")
@@ -66,9 +67,9 @@ def check(args):
         if not src.is_dir() and not args.policy:
             raise ConfigError(f"{args.config!r} is a config file: name the robot with --policy {choices} (a trained "
                               "policy needs its RUN_DIR)")
-    elif not args.policy:
-        raise ConfigError(f"give a RUN_DIR or --policy {choices}")
-    sc = scenario(args.config, args.overrides, "tgrf-render")
+    elif not args.policy and args.pretrained is None:
+        raise ConfigError(f"give a RUN_DIR, --pretrained NAME or --policy {choices}")
+    sc = scenario(args.config, args.overrides, "tgrf-render", args.pretrained)
     if args.step is not None and sc.run_dir is None:
         raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
     return sc
@@ -91,7 +92,13 @@ def main(argv: list[str] | None = None) -> int:
 
     env = CrowdNavEnv(sc.env, sc.reward)
     policies = []
-    if sc.run_dir is not None:
+    if sc.params is not None:
+        from tgrf_jax.train.policy import LearnedPolicy
+        from tgrf_jax.train.ppo import make_network_for
+
+        policies.append((f"pretrained {sc.pretrained}", "learned",
+                         LearnedPolicy(make_network_for(sc.config), sc.params)))
+    elif sc.run_dir is not None:
         from tgrf_jax.train.checkpoint import CheckpointError
         from tgrf_jax.train.loop import restore_run
         from tgrf_jax.train.policy import LearnedPolicy

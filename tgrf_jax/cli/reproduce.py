@@ -27,6 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--print-plan", action="store_true",
                         help="print each row's tgrf-sweep command and state, then exit (nothing runs)")
     parser.add_argument("--report-only", action="store_true", help="rewrite the report from finished rows and exit")
+    parser.add_argument("--export-pretrained", metavar="DIR",
+                        help="export the best seed's policy of every finished row and compared value to "
+                        "DIR/<experiment>-<row>-<value> (tgrf-eval --pretrained plays it)")
     args = parser.parse_args(argv)
 
     from tgrf_jax.experiments import report, runner
@@ -56,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
             for path in report.write(exp, out):
                 print(path)
             return 0
-        return runner.reproduce(exp, out)
+        return runner.reproduce(exp, out, export_to=args.export_pretrained)
     except ConfigError as e:
         print(f"tgrf-reproduce: error: {e}", file=sys.stderr)
         return 2

@@ -132,8 +132,40 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     return code
 
 
-def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print) -> int:
-    """Run every unfinished row of `exp` into `out`, rewriting the report after each row; returns an exit code."""
+def export_best(exp: Experiment, out: pathlib.Path, row: Row, dest_root) -> list[pathlib.Path]:
+    """For each compared value of a finished row, export the best seed's final policy to
+    `dest_root/<experiment>-<row>-<value>` (see `tgrf_jax.pretrained`)."""
+    from tgrf_jax import pretrained
+
+    runs = report.read_evals(out / row.name)
+    axis, written = exp.column_axis, []
+    for value in row.grid[0][1]:
+        members = [r for r in runs if r.get(axis) == str(value)]
+        if not members:
+            continue
+        best = report.cell(members)["best_seed"]
+        run = next(r for r in members if int(r["seed"]) == best)
+        meta = {"experiment": exp.name, "row": row.name, "label": row.label, axis: str(value), "seed": best,
+                "test": {k: report._float(run[k]) for k in ("success_rate", "collision_rate", "timeout_rate",
+                                                           "nav_time", "path_length", "itr_future", "itr_disc")
+                         if k in run},
+                "commit": _provenance_commit(out / row.name)}
+        dest = pathlib.Path(dest_root) / f"{exp.name}-{row.name}-{value}"
+        written.append(pretrained.export(out / row.name / "runs" / run["run"], dest, meta))
+    return written
+
+
+def _provenance_commit(row_dir: pathlib.Path) -> str | None:
+    path = row_dir / PROVENANCE_FILE
+    if not path.is_file():
+        return None
+    invocations = json.loads(path.read_text()).get("invocations") or [{}]
+    return invocations[-1].get("commit")
+
+
+def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, export_to=None) -> int:
+    """Run every unfinished row of `exp` into `out`, rewriting the report after each row; returns an exit code.
+    With `export_to`, each finished row's best policies are exported there (`export_best`)."""
     out = pathlib.Path(out)
     check_out_dir(exp, out)
     out.mkdir(parents=True, exist_ok=True)
@@ -166,6 +198,11 @@ def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print) -> in
                 return 130 if code in (130, -2) else code
             paths = report.write(exp, out)
             say(f"[{exp.name}] row {row.name} done; report: {', '.join(str(p) for p in paths)}")
+        if export_to is not None:
+            for row in exp.rows:
+                if row_state(out / row.name) == "done":
+                    for path in export_best(exp, out, row, export_to):
+                        say(f"[{exp.name}] exported {path}")
         say(f"[{exp.name}] all {len(exp.rows)} rows done")
         return 0
     finally:

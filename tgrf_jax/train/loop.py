@@ -37,7 +37,7 @@ CURVE_FILE = "learning_curve.png"
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "progress.log"
 
-__all__ = ["EVAL_FILE", "RunResult", "SoloProgram", "evaluate_state", "format_eval", "load_run_config",
+__all__ = ["EVAL_FILE", "RunResult", "SoloProgram", "evaluate_params", "evaluate_state", "format_eval", "load_run_config",
            "params_digest", "restore_run", "train_run"]
 
 
@@ -195,6 +195,11 @@ def restore_run(run_dir, step: int | None = None) -> tuple[TrainConfig, TrainSta
 def evaluate_state(config: TrainConfig, state: TrainState, episodes: int, seed: int, baselines=(), net=None) -> dict:
     """SPEC A.4 metrics of the trained (deterministic) policy and optional baselines on the run's env/reward.
     `net` (default: built from the config) keys the compiled evaluation: pass the same one to reuse it."""
+    return evaluate_params(config, state.params, episodes, seed, baselines, net)
+
+
+def evaluate_params(config: TrainConfig, params, episodes: int, seed: int, baselines=(), net=None) -> dict:
+    """`evaluate_state` for bare network parameters (e.g. a pretrained policy)."""
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.evaluate import evaluate
     from tgrf_jax.policies import baseline
@@ -203,7 +208,7 @@ def evaluate_state(config: TrainConfig, state: TrainState, episodes: int, seed: 
 
     env = CrowdNavEnv(config.env, config.reward)
     key = jax.random.key(seed)
-    params = jax.device_get(state.params)  # off the shards' devices: evaluation runs on the default device
+    params = jax.device_get(params)  # off the shards' devices: evaluation runs on the default device
     net = make_network_for(config) if net is None else net
     results = {"learned": evaluate(env, LearnedPolicy(net, params), key, episodes)}
     for name in baselines:

@@ -1,0 +1,68 @@
+"""Pretrained policies: export from a run, play with tgrf-eval / tgrf-render --pretrained, clear errors."""
+
+import json
+import pathlib
+import shutil
+
+import pytest
+
+from tgrf_jax import pretrained
+from tgrf_jax.cli import eval_main, render_main
+from tgrf_jax.config import ConfigError, TrainConfig
+from tgrf_jax.train.loop import train_run
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = str(ROOT / "configs" / "tiny.yaml")
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pretrained")
+    train_run(TrainConfig.from_yaml(TINY, ["run.eval_episodes=0"]), root / "run", log=lambda m: None)
+    dest = pretrained.export(root / "run", root / "policy", meta={"note": "tiny"})
+    return root / "run", dest
+
+
+def test_export_writes_config_params_and_meta(exported):
+    run_dir, dest = exported
+    meta = json.loads((dest / "meta.json").read_text())
+    assert meta["note"] == "tiny" and meta["update"] == 12 and meta["source"] == str(run_dir)
+    config, params, _ = pretrained.load(str(dest))
+    assert config == TrainConfig.from_yaml(run_dir / "config.yaml") and "params" in params
+
+
+def test_eval_of_a_pretrained_policy_equals_eval_of_its_run(exported, tmp_path):
+    run_dir, dest = exported
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    assert eval_main(["--pretrained", str(dest), "--episodes", "6", "--out", str(a)]) == 0
+    assert eval_main([str(run_dir), "--episodes", "6", "--out", str(b)]) == 0
+    assert json.loads(a.read_text())["results"] == json.loads(b.read_text())["results"]
+
+
+def test_render_a_pretrained_policy(exported, tmp_path):
+    _, dest = exported
+    out = tmp_path / "render"
+    assert render_main(["--pretrained", str(dest), "--out", str(out), "--no-frames", "--no-mp4"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert [e["policy"] for e in summary["episodes"]] == ["learned"] and summary["episodes"][0]["gif"]
+
+
+def test_bad_pretrained_policies_are_named(exported, tmp_path, capsys):
+    run_dir, dest = exported
+    assert eval_main(["--pretrained", "nosuch"]) == 2
+    assert "no pretrained policy 'nosuch'" in capsys.readouterr().err
+    assert eval_main([str(run_dir), "--pretrained", str(dest)]) == 2
+    assert "give no RUN_DIR|CONFIG" in capsys.readouterr().err
+    broken = tmp_path / "broken"
+    shutil.copytree(dest, broken)
+    (broken / "params.npz").unlink()
+    with pytest.raises(ConfigError, match="params.npz missing"):
+        pretrained.load(str(broken))
+    shutil.copy(dest / "params.npz", broken / "params.npz")
+    (broken / "config.yaml").write_text((dest / "config.yaml").read_text().replace("name: mlp", "name: hh_attn"))
+    with pytest.raises(ConfigError, match="does not fit the hh_attn/small network"):
+        pretrained.load(str(broken))
+    (broken / "config.yaml").write_text((dest / "config.yaml").read_text())
+    (broken / "params.npz").write_bytes(b"not a zip file")
+    with pytest.raises(ConfigError, match="cannot read the policy"):
+        pretrained.load(str(broken))
