@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import jax.numpy as jnp
 from flax import struct
@@ -50,6 +51,7 @@ class EnvParams:
     unicycle_dv_max: jnp.ndarray
     unicycle_dtheta_max: jnp.ndarray
     reward: RewardParams
+    predictor: Any = None  # parameters of the learned predictor (env.predictor gst), else None
 
     @property
     def max_steps(self):
@@ -64,7 +66,7 @@ class EnvParams:
         numeric = {
             f.name: jnp.asarray(getattr(config, f.name), jnp.float32)
             for f in dataclasses.fields(cls)
-            if f.name != "reward"
+            if f.name not in ("reward", "predictor")
         }
         return cls(**numeric, reward=reward)
 
@@ -95,6 +97,7 @@ class EnvState:
     humans: Humans
     goal_dist_ref: jnp.ndarray  # () goal distance at the last step outside the danger zone (for r_pot)
     step_count: jnp.ndarray  # () int32 steps taken in this episode
+    history: Any = None  # learned predictor's observed frames (tgrf_jax.predictor.history), else None
 
 
 @struct.dataclass

@@ -6,11 +6,13 @@ metadata, so they load with numpy alone and carry what produced them.
 
 from __future__ import annotations
 
+import functools
 import json
 import pathlib
 from typing import Mapping
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from tgrf_jax.predictor.model import init_params
@@ -132,3 +134,17 @@ def pretrained(crowd: str = "orca"):
 
 def pretrained_metadata(crowd: str = "orca") -> dict:
     return load_params(PACKAGE_DIR / (PRETRAINED[crowd] + ".npz"))[1]
+
+
+def for_env(config) -> dict:
+    """The shipped parameters an env config asks for (`env.predictor_params`; auto: its crowd's, else orca's)."""
+    choice = config.predictor_params
+    if choice == "auto":
+        shipped = PACKAGE_DIR / (PRETRAINED.get(config.human_policy, "") + ".npz")
+        choice = config.human_policy if config.human_policy in PRETRAINED and shipped.is_file() else "orca"
+    return _pretrained_arrays(choice)
+
+
+@functools.lru_cache(maxsize=None)
+def _pretrained_arrays(crowd: str):
+    return jax.tree_util.tree_map(jnp.asarray, pretrained(crowd))
