@@ -14,6 +14,7 @@ all 10. The first 80% of the envs (each one long episode) train, the last 20% va
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import pathlib
 import time
@@ -118,9 +119,9 @@ def collect(config: CollectConfig, log=print) -> dict:
     k_init, k_run = jax.random.split(jax.random.key(config.seed))
     rec = jax.jit(jax.vmap(init))(jax.random.split(k_init, b))
 
-    @jax.jit
+    @functools.partial(jax.jit, static_argnames="length")
     def run_chunk(rec, key, length):
-        keys = jax.random.split(key, (length.shape[0], b))
+        keys = jax.random.split(key, (length, b))
         return jax.lax.scan(lambda r, k: jax.vmap(step)(r, k), rec, keys)
 
     out = dict(robot_pos=np.zeros((b, t, 2), np.float32), human_pos=np.zeros((b, t, n, 2), np.float32),
@@ -129,7 +130,7 @@ def collect(config: CollectConfig, log=print) -> dict:
     done = 0
     for c, key in enumerate(jax.random.split(k_run, -(-t // config.chunk))):
         length = min(config.chunk, t - done)
-        rec, frames = run_chunk(rec, key, jnp.zeros((length,)))
+        rec, frames = run_chunk(rec, key, length)
         for name, arr in frames.items():
             out[name][:, done:done + length] = np.swapaxes(np.asarray(arr), 0, 1)
         done += length
