@@ -37,8 +37,10 @@ def test_state_dict_names_with_or_without_prefix(ref, params):
     bare = predictor.from_torch_state_dict({k[2:]: v for k, v in ref.items() if k.startswith("w/")})
     for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(bare)):
         np.testing.assert_array_equal(a, b)
-    # 67,269 reference parameters; the two LSTM bias vectors (256 each) are summed into one here.
-    assert sum(x.size for x in jax.tree_util.tree_leaves(params)) == 67269 - 256
+    # 67,269 reference parameters; the two LSTM bias vectors (256 each) are summed into one here, and the
+    # constant-velocity prior (one scalar) is off.
+    assert sum(x.size for x in jax.tree_util.tree_leaves(params)) == 67269 - 256 + 1
+    assert float(params["cv_prior"]) == 0.0
 
 
 def test_bad_state_dict_names_the_key(ref):

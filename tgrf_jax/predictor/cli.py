@@ -63,6 +63,8 @@ def _parser() -> argparse.ArgumentParser:
         t.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(tdef, name))
     t.add_argument("--lr", type=float, default=tdef.lr)
     t.add_argument("--decay-rate", type=float, default=tdef.decay_rate)
+    t.add_argument("--cv-prior", action=argparse.BooleanOptionalAction, default=tdef.cv_prior,
+                   help="predict corrections to constant velocity (--no-cv-prior: the released model exactly)")
     t.add_argument("--export", help="also write the trained parameters here (.npz + .json)")
     t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints (the run dir must be new)")
 

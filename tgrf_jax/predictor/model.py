@@ -12,6 +12,12 @@ including its quirks (they change numbers, and the released weights were tuned u
 
 Per-step outputs are bivariate Gaussians over the next displacement; `predict` accumulates them into
 absolute positions the way the wrapper does.
+
+One addition, off for the released weights: the parameter `cv_prior` (a frozen scalar, 0 or 1) adds the last
+observed displacement to every predicted mean displacement, so the network predicts a correction to constant
+velocity. The released architecture reads speeds through a LayerNorm of a 2-to-64 embedding, which makes
+"keep walking as before" hard to represent to centimetre precision; on the simulator's crowds even the released
+weights predict worse than constant velocity. With `cv_prior` = 0 the model is exactly the released one.
 """
 
 from __future__ import annotations
@@ -104,11 +110,14 @@ class GST(nn.Module):
         spatial = SpatialBlock(name="spatial")
         lstm = LSTMStep(name="lstm")
         head = nn.Dense(5, name="head")
+        # Frozen: the optimiser sees a zero gradient and leaves it where initialisation or import put it.
+        prior = jax.lax.stop_gradient(self.param("cv_prior", nn.initializers.zeros, ()))
         m_rel, mf = displacement_masks(visible)
         v = jnp.concatenate([jnp.zeros_like(positions[:, :1]), positions[:, 1:] - positions[:, :-1]], axis=1)
         # Invalid displacements never reach a valid row (their rows are zeroed after the norm and masked out
         # of attention), so zero stands in for the reference's -999 without changing any output.
         v = v * m_rel[..., None]
+        base = prior * v[:, -1]  # last displacement, valid wherever a prediction is made (mf)
         xs = spatial(jnp.swapaxes(v, 0, 1), m_rel.T, deterministic)  # (5, N, D)
         n = positions.shape[0]
         h = c = jnp.zeros((n, D_MODEL), positions.dtype)
@@ -116,26 +125,34 @@ class GST(nn.Module):
             h, c = lstm(xs[t] * m_rel[:, t, None], h, c)
         h, c = h * mf[:, None], c * mf[:, None]
 
-        raws = []
+        raws, mus = [], []
         for step in range(PRED_LEN):
             if step:
-                x = spatial(raws[-1][:, :2] * mf[:, None], mf, deterministic) * mf[:, None]
+                x = spatial(mus[-1] * mf[:, None], mf, deterministic) * mf[:, None]
                 h_new, c_new = lstm(x, h, c)
                 keep = mf[:, None] > 0
                 h, c = jnp.where(keep, h_new, h), jnp.where(keep, c_new, c)
             raws.append(head(h))
+            mus.append(raws[-1][:, :2] + base)
         raw = jnp.stack(raws, axis=1)  # (N, K, 5)
-        return StepGaussians(mu=raw[..., :2], sigma=jnp.exp(raw[..., 2:4]), corr=jnp.tanh(raw[..., 4]),
+        return StepGaussians(mu=jnp.stack(mus, axis=1), sigma=jnp.exp(raw[..., 2:4]), corr=jnp.tanh(raw[..., 4]),
                              out_mask=mf > 0)
 
 
 MODEL = GST()
 
 
-def init_params(key, num_humans: int = 20):
-    """Freshly initialised parameters (flax defaults: LeCun-normal kernels, zero biases)."""
+def init_params(key, num_humans: int = 20, cv_prior: bool = False):
+    """Freshly initialised parameters (flax defaults: LeCun-normal kernels, zero biases).
+
+    With `cv_prior` the output head starts at zero, so the untrained model predicts constant velocity (unit
+    sigmas, no correlation) and training learns the corrections."""
     pos = jnp.zeros((num_humans, OBS_LEN, 2))
-    return MODEL.init(key, pos, jnp.ones((num_humans, OBS_LEN), bool))["params"]
+    params = MODEL.init(key, pos, jnp.ones((num_humans, OBS_LEN), bool))["params"]
+    if cv_prior:
+        head = jax.tree_util.tree_map(jnp.zeros_like, params["head"])
+        params = {**params, "head": head, "cv_prior": jnp.ones((), jnp.float32)}
+    return params
 
 
 def step_gaussians(params, positions, visible, *, dropout_key=None) -> StepGaussians:

@@ -40,6 +40,7 @@ class TrainConfig:
     log_every: int = 100
     checkpoint_every: int = 1000
     eval_windows: int = 20000
+    cv_prior: bool = True  # predict corrections to constant velocity (see tgrf_jax.predictor.model)
 
     def __post_init__(self):
         for name in ("updates", "batch_size", "decay_every", "log_every", "checkpoint_every", "eval_windows"):
@@ -127,7 +128,7 @@ def _train_chunk(state: TrainState, data: dict, index, *, learning: tuple, lengt
 def init_state(config: TrainConfig) -> TrainState:
     key = jax.random.key(config.seed)
     k_init, k_run = jax.random.split(key)
-    params = init_params(k_init)
+    params = init_params(k_init, cv_prior=config.cv_prior)
     return TrainState(params=params, opt_state=optimizer(config).init(params), step=jnp.zeros((), jnp.int32),
                       key=jax.random.key_data(k_run))
 

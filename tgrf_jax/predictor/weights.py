@@ -67,12 +67,13 @@ def from_torch_state_dict(arrays: Mapping[str, np.ndarray]):
     }
     head = {"kernel": get("hidden2pos.weight", template["head"]["kernel"][::-1]).T,
             "bias": get("hidden2pos.bias", template["head"]["bias"])}
-    return jax.tree_util.tree_map(np.ascontiguousarray, {"spatial": spatial, "lstm": lstm, "head": head})
+    params = {"spatial": spatial, "lstm": lstm, "head": head, "cv_prior": np.zeros((), np.float32)}
+    return jax.tree_util.tree_map(lambda x: np.array(x, np.float32, order="C"), params)
 
 
 def flatten(params) -> dict[str, np.ndarray]:
     flat = {}
-    for path, leaf in jax.tree_util.tree_leaves_with_path(params):
+    for path, leaf in jax.tree_util.tree_leaves_with_path(dict(params)):
         flat["/".join(p.key for p in path)] = np.asarray(leaf, np.float32)
     return flat
 
