@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tgrf_jax import predictor
 from tgrf_jax.predictor import data as data_lib
 from tgrf_jax.predictor import train as train_lib
 from tgrf_jax.predictor import cli
@@ -80,10 +81,14 @@ def test_constant_velocity_is_exact_on_straight_walkers():
     dataset = synthetic()
     data = data_lib.device_arrays(dataset["arrays"])
     _, val = data_lib.split_index(dataset["arrays"])
-    metrics = train_lib.make_evaluator(data, chunk=8)(train_lib.init_state(train_lib.TrainConfig()).params, val)
+    evaluate = train_lib.make_evaluator(data, chunk=8)
+    metrics = evaluate(predictor.init_params(jax.random.key(0)), val)
     assert metrics["cv_ade"] < 1e-5 and metrics["cv_fde"] < 1e-5
     assert metrics["ade"] > 0.01 and np.isfinite(metrics["nll"])
     assert metrics["windows"] == len(val)
+    # with the constant-velocity prior, the untrained model (zero head) is constant velocity
+    prior = evaluate(train_lib.init_state(train_lib.TrainConfig(cv_prior=True)).params, val)
+    assert prior["ade"] < 1e-5 and prior["humans"] == metrics["humans"]
 
 
 def test_training_resumes_bit_identically(tmp_path):

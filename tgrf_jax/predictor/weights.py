@@ -50,7 +50,7 @@ def from_torch_state_dict(arrays: Mapping[str, np.ndarray]):
             raise WeightsError(f"state dict {name!r} has shape {sd[name].shape}, expected {shape}")
         return sd[name]
 
-    template = jax.tree_util.tree_map(lambda x: x.shape, init_params(jax.random.key(0)))
+    template = jax.tree_util.tree_map(lambda x: x.shape, jax.eval_shape(init_params, jax.random.key(0)))
     spatial = {}
     for ours, theirs in _LINEAR.items():
         k_shape = template["spatial"][ours]["kernel"]
@@ -80,7 +80,7 @@ def flatten(params) -> dict[str, np.ndarray]:
 
 def unflatten(flat: Mapping[str, np.ndarray], source: str):
     """Nested params from flattened paths, checked against the model's parameter shapes."""
-    template = flatten(init_params(jax.random.key(0)))
+    template = _template()
     missing = sorted(set(template) - set(flat))
     extra = sorted(set(flat) - set(template))
     if missing or extra:
@@ -95,6 +95,13 @@ def unflatten(flat: Mapping[str, np.ndarray], source: str):
             node = node.setdefault(p, {})
         node[leaf] = np.asarray(flat[name], np.float32)
     return params
+
+
+@functools.lru_cache(maxsize=None)
+def _template() -> dict:
+    """Flattened path -> shape/dtype of the model's parameters (traced abstractly: no computation)."""
+    shapes = jax.eval_shape(init_params, jax.random.key(0))
+    return {"/".join(p.key for p in path): leaf for path, leaf in jax.tree_util.tree_leaves_with_path(shapes)}
 
 
 def save_params(path, params, metadata: dict) -> pathlib.Path:
