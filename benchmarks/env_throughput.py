@@ -8,10 +8,12 @@ the crowd mid-crossing, where ORCA is slowest, as in training). For batches of 1
 (`ppo.reset_ratio: 8`), and the same split over D CPU devices (`--devices`, default: one per core), each
 stepping B / D envs under `shard_map`, as the trainer's env shards do: one XLA program spreads its small ops
 over the cores poorly, D programs side by side do not. In the same run, Python-RVO2's raw 20-agent doStep rate is timed as the on-machine
-reference for a compiled ORCA step.
+reference for a compiled ORCA step. Rows with predictor `gst` run the learned predictor (the shipped weights) inside
+every step; its XLA-counted FLOPs per env step are printed beside them (`--gst-only`: just const_vel against gst).
 
     python -m benchmarks.env_throughput --quick --out bench_results/env_quick.json
     python -m benchmarks.env_throughput --out bench_results/env_full.json
+    python -m benchmarks.env_throughput --gst-only --out bench_results/env_gst.json
 """
 
 from __future__ import annotations
@@ -90,14 +92,26 @@ def time_from_mid_crossing(run, obs, state, repeats: int) -> tuple[float, float]
     return max(first_s - run_s, 0.0), run_s
 
 
+def gst_flops_per_env_step(num_humans: int) -> float:
+    """FLOPs of one learned-predictor call (one env, one step) as XLA's cost analysis counts them."""
+    from tgrf_jax.predictor import predict, pretrained
+
+    pos = jnp.zeros((num_humans, 5, 2))
+    compiled = jax.jit(predict).lower(pretrained("orca"), pos, jnp.ones((num_humans, 5), bool)).compile()
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return float(cost["flops"])
+
+
 def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int, plain: bool = True,
-            mesh=None) -> dict:
+            mesh=None, predictor: str = "const_vel") -> dict:
     """One grid point: `vmap(step)` (unless not `plain`) and, from batch 16, `step_batch`, also over the devices
     of `mesh` (if given and the batch splits into slices of at least 16)."""
-    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": "const_vel"})
+    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": predictor})
     params = env.default_params
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(0), batch), params)
-    row = {"policy": policy, "num_humans": num_humans, "batch": batch, "steps_per_call": n_steps}
+    row = {"policy": policy, "num_humans": num_humans, "batch": batch, "steps_per_call": n_steps,
+           "predictor": predictor}
     runners = {}
     if plain or batch < 16:
         runners["env_steps_per_s"] = make_runner(env, n_steps)[0]
@@ -155,6 +169,8 @@ def main(argv=None):
                         help="20 humans: ORCA at batches 128 and 1024, Social Force at 1024; step_batch only, "
                              "shorter scans, no breakdown (< 1 minute)")
     parser.add_argument("--out", help="write results as JSON here")
+    parser.add_argument("--gst-only", action="store_true",
+                        help="only 20 ORCA humans at batch 1024, const_vel against the learned gst predictor")
     parser.add_argument("--devices", type=int, default=len(os.sched_getaffinity(0)),
                         help="CPU devices for the sharded step_batch column (default: one per core; 1: skip it)")
     args = parser.parse_args(argv)
@@ -163,27 +179,46 @@ def main(argv=None):
     if args.devices > 1 and len(jax.devices()) >= args.devices:
         mesh = jax.sharding.Mesh(jax.devices()[:args.devices], (ENV_AXIS,))
 
-    if args.quick:
-        grid = [("orca", 20, 128), ("orca", 20, 1024), ("social_force", 20, 1024)]
+    if args.gst_only:
+        grid = [("orca", 20, 1024, "const_vel"), ("orca", 20, 1024, "gst")]
+        repeats = 2
+    elif args.quick:
+        grid = [("orca", 20, 128), ("orca", 20, 1024), ("social_force", 20, 1024), ("orca", 20, 1024, "gst")]
         repeats = 2  # and only step_batch (the trainer's path): each ORCA program takes ~10 s to compile
     else:
         grid = [(p, n, b) for p in ("orca", "social_force") for n in (5, 10, 20, 50)
-                for b in (1, 16, 256, 1024, 4096)]
+                for b in (1, 16, 256, 1024, 4096)] + [("orca", 20, b, "gst") for b in (256, 1024)]
         repeats = 3
+    quick = args.quick or args.gst_only
     info = machine_info()
     print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")
     rows = []
     d = "-" if mesh is None else mesh.devices.size
-    print(f"{'policy':>13} {'humans':>6} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} {'step_batch':>12} "
-          f"{f'on {d} devices':>14}")
-    for policy, n, batch in grid:
-        row = measure(policy, n, batch, scan_length(batch, args.quick), repeats, plain=not args.quick, mesh=mesh)
+    print(f"{'policy':>13} {'humans':>6} {'predictor':>9} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} "
+          f"{'step_batch':>12} {f'on {d} devices':>14}")
+    for policy, n, batch, *pred in grid:
+        predictor = pred[0] if pred else "const_vel"
+        row = measure(policy, n, batch, scan_length(batch, quick), repeats, plain=not quick, mesh=mesh,
+                      predictor=predictor)
         rows.append(row)
         cells = (f"{row[k]:>12,.0f}" if k in row else f"{'-':>12}" for k in ("env_steps_per_s",
                                                                              "step_batch_env_steps_per_s"))
         sharded = row.get("step_batch_devices_env_steps_per_s")
-        print(f"{policy:>13} {n:>6} {batch:>6} {row['compile_s']:>9.1f} {' '.join(cells)} "
+        print(f"{policy:>13} {n:>6} {predictor:>9} {batch:>6} {row['compile_s']:>9.1f} {' '.join(cells)} "
               f"{'-' if sharded is None else f'{sharded:,.0f}':>14}", flush=True)
+
+    gst_flops = None
+    if any(r["predictor"] == "gst" for r in rows):
+        gst_flops = gst_flops_per_env_step(20)
+        for r in (r for r in rows if r["predictor"] == "gst"):
+            best_rate = max(r.get(k, 0.0) for k in ("env_steps_per_s", "step_batch_env_steps_per_s",
+                                                     "step_batch_devices_env_steps_per_s"))
+            print(f"gst predictor: {gst_flops / 1e6:.1f} MFLOP per env step (XLA cost analysis, 20 humans); at "
+                  f"{best_rate:,.0f} env-steps/s (batch {r['batch']}) that is {gst_flops * best_rate / 1e9:.1f} GFLOP/s")
+    if args.gst_only:
+        write_json(args.out, {"benchmark": "env_throughput", "gst_only": True, "machine": machine_info(),
+                              "gst_flops_per_env_step": gst_flops, "results": rows})
+        return
 
     from benchmarks.orca_throughput import rvo2_dostep_rate
 
@@ -191,13 +226,15 @@ def main(argv=None):
     print(f"Python-RVO2 raw doStep, 20 agents, one core: {rvo2:,.0f} steps/s")
     rate = lambda r: max(r.get("env_steps_per_s", 0.0), r.get("step_batch_env_steps_per_s", 0.0),  # noqa: E731
                          r.get("step_batch_devices_env_steps_per_s", 0.0))
-    best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20), key=rate)
+    best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20 and r["predictor"] == "const_vel"),
+               key=rate)
     print(f"best ORCA-20 env: {rate(best):,.0f} env-steps/s at batch {best['batch']} "
           f"= {rate(best) / rvo2:.1f}x RVO2's raw doStep")
     parts = {} if args.quick else {p: breakdown(p, 20, 1024, repeats) for p in ("orca", "social_force")}
     for p, ms in parts.items():
         print(f"where the time goes, {p}, 20 humans, batch 1024 (ms per batched call): {ms}")
     write_json(args.out, {"benchmark": "env_throughput", "quick": args.quick, "machine": info,
+                          "gst_flops_per_env_step": gst_flops,
                           "rvo2_dostep_20_per_s": rvo2, "results": rows, "breakdown_ms_batch1024": parts})
 
 

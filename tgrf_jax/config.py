@@ -110,7 +110,9 @@ class EnvConfig:
     # --- static: shapes and code paths -------------------------------------------------------------
     num_humans: int = spec(20, low=0, high=MAX_HUMANS)
     human_policy: str = spec("orca", choices=("orca", "social_force"))
-    predictor: str = spec("const_vel", choices=("none", "const_vel", "truth"))
+    predictor: str = spec("const_vel", choices=("none", "const_vel", "truth", "gst"))
+    predictor_params: str = spec("auto", choices=("auto", "orca", "social_force"),
+                                 doc="gst: shipped parameters to use (auto: those of env.human_policy's crowd)")
     pred_horizon: int = spec(5, low=1, high=50, doc="K, prediction steps")
     kinematics: str = spec("holonomic", choices=("holonomic", "unicycle"))
     robot_visible: bool = spec(False, doc="humans see and avoid the robot")
@@ -167,6 +169,9 @@ class EnvConfig:
                 f"env.predictor = {self.predictor!r} needs humans to predict, but env.num_humans = 0; "
                 "use predictor: none (or num_humans >= 1)"
             )
+        if self.predictor == "gst" and self.pred_horizon != 5:
+            raise ConfigError(f"env.pred_horizon = {self.pred_horizon} must be 5 with env.predictor = 'gst' "
+                              "(the learned model predicts 5 steps)")
         diagonal = 2.0 * math.sqrt(2.0) * self.arena_size
         if self.min_start_goal_dist >= diagonal:
             raise ConfigError(

@@ -46,15 +46,17 @@ def traced_names(cls) -> tuple[str, ...]:
 
 def traced_pytree(name: str, config_cls, *, first=(), last=(), base=None, module=None, doc=None):
     """A `flax.struct.dataclass` with one array leaf per traced field of `config_cls`, between the extra
-    `(name, type)` fields `first` and `last`; `base` (a plain class) contributes properties and methods."""
+    `(name, type)` fields `first` and `last` (a `last` field may be `(name, type, default)`); `base` (a plain
+    class) contributes properties and methods."""
     import jax.numpy as jnp
     from flax import struct
 
-    annotations = dict(first)
+    annotations = {f[0]: f[1] for f in first}
     annotations.update({n: jnp.ndarray for n in traced_names(config_cls)})
-    annotations.update(dict(last))
+    annotations.update({f[0]: f[1] for f in last})
     namespace = {"__annotations__": annotations, "__module__": module or __name__, "__qualname__": name,
                  "__doc__": doc}
+    namespace.update({f[0]: f[2] for f in last if len(f) == 3})  # (name, type, default)
     return struct.dataclass(type(name, (base,) if base else (), namespace))
 
 

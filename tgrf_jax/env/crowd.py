@@ -18,6 +18,8 @@ from tgrf_jax import reward as reward_lib
 from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
 from tgrf_jax.env import humans as humans_lib
 from tgrf_jax.env import scenario, sensing
+from tgrf_jax.predictor import history as gst_history
+from tgrf_jax.predictor import weights as gst_weights
 from tgrf_jax.geometry import norm
 from tgrf_jax.env.types import (
     COLLISION, RUNNING, SUCCESS, TIMEOUT, EnvParams, EnvState, Info, Obs, Robot,
@@ -116,7 +118,10 @@ class CrowdNavEnv:
 
     @property
     def default_params(self) -> EnvParams:
-        return EnvParams.from_config(self.config, self.reward_config.params())
+        params = EnvParams.from_config(self.config, self.reward_config.params())
+        if self.config.predictor == "gst":
+            params = params.replace(predictor=gst_weights.for_env(self.config))
+        return params
 
     @property
     def num_humans(self) -> int:
@@ -213,7 +218,9 @@ class CrowdNavEnv:
             orca_neighbor_dist=neighbor_dist,
         )
         visible = sensing.visible_mask(state, params)
-        predictions = humans_lib.predict(humans, params, self.config, neighbor_dist)
+        if self.config.predictor == "gst":
+            state = state.replace(history=gst_history.fresh(robot.pos, humans.pos, visible))
+        predictions, _ = self._predict(state, params, visible)
         return sensing.observe(state, params, predictions, visible), state
 
     def step_env(self, key, state: EnvState, action, params: EnvParams):
@@ -244,12 +251,14 @@ class CrowdNavEnv:
         next_state = state.replace(robot=robot, humans=humans, step_count=step_count)
 
         visible = sensing.visible_mask(next_state, params)
-        predictions = humans_lib.predict(humans, params, cfg, state.orca_neighbor_dist)
+        if cfg.predictor == "gst":
+            next_state = next_state.replace(history=gst_history.push(state.history, robot.pos, humans.pos, visible))
+        predictions, counted = self._predict(next_state, params, visible)
         if predictions is None:
             pred_hits = jnp.zeros((cfg.num_humans, 1), bool)
         else:
             pred_dist = norm(predictions - robot.pos)
-            pred_hits = visible[:, None] & (pred_dist < params.reward.pred_radius)
+            pred_hits = counted[:, None] & (pred_dist < params.reward.pred_radius)
 
         terms = reward_lib.step_reward(
             params.reward,
@@ -291,6 +300,14 @@ class CrowdNavEnv:
             final_obs=obs,
         )
         return obs, next_state, terms.total, terminated, truncated, info
+
+    def _predict(self, state: EnvState, params: EnvParams, visible):
+        """World-frame predictions (N, K, 2) or None, and the humans whose predictions count for r_pred (visible,
+        and for gst also predicted: seen in the last two frames)."""
+        if self.config.predictor == "gst":
+            pred = gst_history.predictions(params.predictor, state.history)
+            return pred.means, visible & pred.out_mask
+        return humans_lib.predict(state.humans, params, self.config, state.orca_neighbor_dist), visible
 
     def _future_intrusion(self, state: EnvState, visible, predictions, params):
         """itr_future: robot centre within intrusion_radius of a visible human's true position at t+1..t+K."""

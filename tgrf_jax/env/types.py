@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax.numpy as jnp
 from flax import struct
 
@@ -29,11 +31,13 @@ class _EnvParamsMethods:
 
 
 EnvParams = traced_pytree(
-    "EnvParams", EnvConfig, last=(("reward", RewardParams),), base=_EnvParamsMethods, module=__name__,
+    "EnvParams", EnvConfig, last=(("reward", RewardParams), ("predictor", Any, None)), base=_EnvParamsMethods,
+    module=__name__,
     doc="""Every numeric setting of the environment (traced: vmap over any field for grids or randomisation).
 
     One float32 leaf per traced field of `EnvConfig` (where each is declared and documented), plus the reward
-    parameters; `CrowdNavEnv.default_params` builds it from a config.""",
+    parameters and, with `env.predictor: gst`, the learned predictor's weights (`predictor`, else None);
+    `CrowdNavEnv.default_params` builds it from a config.""",
 )
 
 
@@ -64,6 +68,7 @@ class EnvState:
     goal_dist_ref: jnp.ndarray  # () goal distance at the last step outside the danger zone (for r_pot)
     step_count: jnp.ndarray  # () int32 steps taken in this episode
     orca_neighbor_dist: jnp.ndarray  # () the humans' ORCA neighbour distance, drawn once per episode
+    history: Any = None  # learned predictor's observed frames (tgrf_jax.predictor.history), else None
 
 
 @struct.dataclass

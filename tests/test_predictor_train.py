@@ -1,0 +1,160 @@
+"""Predictor data, loss, training (bit-identical resume), evaluation and the `tgrf-predictor` command."""
+
+import json
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tgrf_jax import predictor
+from tgrf_jax.predictor import data as data_lib
+from tgrf_jax.predictor import train as train_lib
+from tgrf_jax.predictor import cli
+from tgrf_jax.predictor.model import StepGaussians
+
+
+def synthetic(b=5, t=40, n=3, seed=0):
+    """Straight-line walkers seen all the time, except human 2 who leaves the view for frames 12..14."""
+    rng = np.random.default_rng(seed)
+    start = rng.uniform(-3, 3, (b, 1, n, 2))
+    vel = rng.uniform(-1, 1, (b, 1, n, 2))
+    times = np.arange(t, dtype=np.float32)[None, :, None, None] * 0.25
+    visible = np.ones((b, t, n), bool)
+    visible[:, 12:15, 2] = False
+    seg = np.zeros((b, t, n), np.int16)
+    seg[:, 15:, 2] = 1  # re-entry: a new pedestrian
+    arrays = dict(robot_pos=np.zeros((b, t, 2), np.float32), human_pos=(start + vel * times).astype(np.float32),
+                  visible=visible, seg=seg)
+    return {"arrays": arrays, "config": {"crowd": "synthetic", "seed": seed}}
+
+
+def test_window_rules():
+    arrays = synthetic()["arrays"]
+    index = data_lib.window_index(arrays["visible"], arrays["seg"], range(1))
+    # humans 0 and 1 are present throughout, so every start is kept
+    assert len(index) == 40 - 9
+    arrays["visible"][0, :, :2] = False
+    index = data_lib.window_index(arrays["visible"], arrays["seg"], range(1))
+    # only human 2 left: windows must lie inside frames 0..11 or 15..39
+    assert set(index[:, 1].tolist()) == set(range(0, 3)) | set(range(15, 31))
+    train, val = data_lib.split_index(synthetic()["arrays"])
+    assert set(train[:, 0].tolist()) == {0, 1, 2, 3} and set(val[:, 0].tolist()) == {4}
+
+
+def test_reentry_is_a_new_pedestrian():
+    arrays = synthetic()["arrays"]
+    data = data_lib.device_arrays(arrays)
+    w = data_lib.make_window(data, jnp.array([0, 10]))  # frames 10..19; human 2 unseen in 12..14, new id from 15
+    # the observed pedestrian (seen in frames 10, 11) is gone; the one entering at 15 is someone else
+    np.testing.assert_array_equal(np.asarray(w.visible[2]), [True, True, False, False, False])
+    np.testing.assert_array_equal(np.asarray(w.target_valid[2]), [False] * 5)
+    np.testing.assert_allclose(np.asarray(w.positions[2, 2:]), np.full((3, 2), 15.0))  # the env's filler
+    w = data_lib.make_window(data, jnp.array([0, 13]))  # frames 13..22: seen from frame 15 (observed index 2)
+    np.testing.assert_array_equal(np.asarray(w.visible[2]), [False, False, True, True, True])
+    np.testing.assert_array_equal(np.asarray(w.target_valid[2]), [True] * 5)
+    np.testing.assert_allclose(np.asarray(w.target[0]), arrays["human_pos"][0, 18:23, 0])
+
+
+def test_nll_is_the_bivariate_gaussian_density():
+    rng = np.random.default_rng(1)
+    mu, sig = rng.normal(size=(4, 5, 2)) * 0.1, rng.uniform(0.05, 0.5, (4, 5, 2))
+    corr = rng.uniform(-0.9, 0.9, (4, 5))
+    g = StepGaussians(mu=jnp.asarray(mu), sigma=jnp.asarray(sig), corr=jnp.asarray(corr), out_mask=jnp.ones(4, bool))
+    pos = rng.normal(size=(4, 5, 2))
+    target = pos[:, -1:] + np.cumsum(rng.normal(size=(4, 5, 2)) * 0.2, axis=1)
+    batch = data_lib.Batch(positions=jnp.asarray(pos), visible=jnp.ones((4, 5), bool), target=jnp.asarray(target),
+                           target_valid=jnp.ones((4, 5), bool))
+    nll, mask = train_lib.nll_terms(g, batch)
+    disp = np.diff(np.concatenate([pos[:, -1:], target], 1), axis=1)
+    for i, k in [(0, 0), (2, 3), (3, 4)]:
+        sx, sy, r = sig[i, k, 0], sig[i, k, 1], corr[i, k]
+        cov = np.array([[sx * sx, r * sx * sy], [r * sx * sy, sy * sy]])
+        d = disp[i, k] - mu[i, k]
+        logpdf = -0.5 * d @ np.linalg.solve(cov, d) - 0.5 * np.log(np.linalg.det(cov)) - np.log(2 * np.pi)
+        np.testing.assert_allclose(float(nll[i, k]), -(logpdf + np.log(2 * np.pi)), rtol=1e-4)
+    assert bool(mask.all())
+
+
+def test_constant_velocity_is_exact_on_straight_walkers():
+    dataset = synthetic()
+    data = data_lib.device_arrays(dataset["arrays"])
+    _, val = data_lib.split_index(dataset["arrays"])
+    evaluate = train_lib.make_evaluator(data, chunk=8)
+    metrics = evaluate(predictor.init_params(jax.random.key(0)), val)
+    assert metrics["cv_ade"] < 1e-5 and metrics["cv_fde"] < 1e-5
+    assert metrics["ade"] > 0.01 and np.isfinite(metrics["nll"])
+    assert metrics["windows"] == len(val)
+    # with the constant-velocity prior, the untrained model (zero head) is constant velocity
+    prior = evaluate(train_lib.init_state(train_lib.TrainConfig(cv_prior=True)).params, val)
+    assert prior["ade"] < 1e-5 and prior["humans"] == metrics["humans"]
+
+
+def test_training_resumes_bit_identically(tmp_path):
+    dataset = synthetic()
+    config = train_lib.TrainConfig(updates=4, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2,
+                                   eval_windows=8)
+    full, meta = train_lib.train(config, dataset, tmp_path / "full", log=lambda s: None)
+    assert meta["eval"]["humans"] > 0
+    # stop after 2 updates, then resume the same run to 4 (the update count may grow between invocations)
+    half = train_lib.TrainConfig(**{**meta["train"], "updates": 2})
+    train_lib.train(half, dataset, tmp_path / "split", log=lambda s: None)
+    resumed, _ = train_lib.train(config, dataset, tmp_path / "split", log=lambda s: None)
+    for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(resumed)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # a run directory holding another config is refused, naming the directory
+    with pytest.raises(train_lib.CheckpointError, match="split.*batch_size"):
+        train_lib.train(train_lib.TrainConfig(**{**meta["train"], "batch_size": 8}), dataset, tmp_path / "split")
+
+
+def test_dataset_roundtrip_and_errors(tmp_path):
+    dataset = synthetic()
+    path = data_lib.save_dataset(tmp_path / "d.npz", dataset)
+    loaded = data_lib.load_dataset(path)
+    for k, v in dataset["arrays"].items():
+        np.testing.assert_array_equal(loaded["arrays"][k], v)
+    assert json.loads((tmp_path / "d.json").read_text())["config"] == dataset["config"]
+    with pytest.raises(data_lib.DatasetError, match="missing.npz.*does not exist"):
+        data_lib.load_dataset(tmp_path / "missing.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(path.read_bytes()[:1000])
+    with pytest.raises(data_lib.DatasetError, match="bad.npz.*corrupt"):
+        data_lib.load_dataset(bad)
+
+
+def test_collector_is_deterministic_and_logs_only_what_the_robot_sees():
+    config = data_lib.CollectConfig(crowd="social_force", num_envs=5, steps=12, num_humans=4, chunk=6, seed=3)
+    a = data_lib.collect(config, log=lambda s: None)["arrays"]
+    b = data_lib.collect(config, log=lambda s: None)["arrays"]
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    assert a["human_pos"].shape == (5, 12, 4, 2)
+    # visibility is the 5 m edge-to-edge sensor: centre distance <= 5 + 0.3 + r (r <= 0.5)
+    dist = np.linalg.norm(a["human_pos"] - a["robot_pos"][:, :, None], axis=-1)
+    assert np.all(dist[a["visible"]] <= 5.8 + 1e-5) and np.all(dist[~a["visible"]] > 5.6 - 1e-5)
+    # a slot's segment advances exactly when its human comes (back) into view or respawns
+    assert np.all(np.diff(a["seg"].astype(int), axis=1) >= 0)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["train", "--dataset", "nowhere.npz", "--run-dir", "r"], "nowhere.npz.*does not exist"),
+    (["train", "--dataset", "d.npz", "--run-dir", "r", "--updates", "0"], "updates = 0 must be an integer >= 1"),
+    (["collect", "--envs", "2", "--out", "x.npz"], "num_envs = 2 must be an integer >= 5"),
+    (["eval", "--dataset", "d.npz", "--params", "nothing.npz"], "nothing.npz.*do not exist"),
+])
+def test_cli_errors_name_the_option_or_path(argv, message, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(argv)
+    assert exit_info.value.code == 2
+    assert re.search(message, capsys.readouterr().err)
+
+
+def test_cli_rejects_parameters_that_do_not_fit(tmp_path, capsys):
+    np.savez(tmp_path / "p.npz", **{"head/kernel": np.zeros((64, 5))})
+    data_lib.save_dataset(tmp_path / "d.npz", synthetic())
+    with pytest.raises(SystemExit):
+        cli.main(["eval", "--dataset", str(tmp_path / "d.npz"), "--params", str(tmp_path / "p.npz")])
+    err = capsys.readouterr().err
+    assert "p.npz" in err and "do not fit the GST model" in err

@@ -1,0 +1,147 @@
+"""`tgrf-predictor collect | train | eval`: datasets, training and held-out evaluation of the GST predictor.
+
+    tgrf-predictor collect --crowd orca --out data/gst_orca.npz
+    tgrf-predictor train --dataset data/gst_orca.npz --run-dir runs/gst_orca
+    tgrf-predictor eval --dataset data/gst_orca.npz --params runs/gst_orca/gst.npz
+    tgrf-predictor eval --dataset data/gst_orca.npz --pretrained orca
+
+Every option is checked before anything is compiled; a bad value, a missing or corrupt dataset, or a missing or
+incompatible parameter file / checkpoint stops with a message naming the option or path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import pathlib
+import platform
+import subprocess
+import sys
+
+from tgrf_jax.predictor import data as data_lib
+from tgrf_jax.predictor import train as train_lib
+from tgrf_jax.predictor import weights as weights_lib
+from tgrf_jax.train.checkpoint import CheckpointError
+
+_ERRORS = (ValueError, CheckpointError)  # DatasetError and WeightsError are ValueErrors
+
+
+def _commit() -> str:
+    try:
+        root = pathlib.Path(__file__).resolve().parents[2]
+        return subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _provenance() -> dict:
+    return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "commit": _commit(), "machine": platform.processor() or platform.machine(),
+            "command": "tgrf-predictor " + " ".join(sys.argv[1:])}
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="tgrf-predictor", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    c = sub.add_parser("collect", help="collect a dataset from the JAX simulator")
+    defaults = data_lib.CollectConfig()
+    c.add_argument("--crowd", choices=data_lib.CROWDS, default=defaults.crowd)
+    c.add_argument("--envs", type=int, default=defaults.num_envs, help="parallel envs, one long episode each")
+    c.add_argument("--steps", type=int, default=defaults.steps, help="frames per env")
+    c.add_argument("--seed", type=int, default=defaults.seed)
+    c.add_argument("--out", required=True, help="dataset path (.npz; the config goes beside it as .json)")
+
+    t = sub.add_parser("train", help="train on a dataset, resuming from --run-dir's checkpoints")
+    tdef = train_lib.TrainConfig()
+    t.add_argument("--dataset", required=True)
+    t.add_argument("--run-dir", required=True, help="checkpoints, run.json and the exported gst.npz go here")
+    for name in ("updates", "batch_size", "decay_every", "seed", "log_every", "checkpoint_every", "eval_windows"):
+        t.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(tdef, name))
+    t.add_argument("--lr", type=float, default=tdef.lr)
+    t.add_argument("--decay-rate", type=float, default=tdef.decay_rate)
+    t.add_argument("--cv-prior", action=argparse.BooleanOptionalAction, default=tdef.cv_prior,
+                   help="predict corrections to constant velocity (--no-cv-prior: the released model exactly)")
+    t.add_argument("--export", help="also write the trained parameters here (.npz + .json)")
+    t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints (the run dir must be new)")
+
+    e = sub.add_parser("eval", help="held-out ADE / FDE / NLL against constant velocity")
+    e.add_argument("--dataset", required=True)
+    which = e.add_mutually_exclusive_group(required=True)
+    which.add_argument("--params", help="parameters written by `train` (.npz)")
+    which.add_argument("--pretrained", choices=tuple(weights_lib.PRETRAINED), help="the shipped parameters")
+    which.add_argument("--torch-state-dict", help=".npz of the reference's state-dict arrays (names as in the "
+                                                  "reference fixture, 'w/' prefix optional)")
+    e.add_argument("--windows", type=int, default=tdef.eval_windows, help="held-out windows evaluated (spread evenly)")
+    e.add_argument("--out", help="write the metrics as JSON here")
+    return parser
+
+
+def _load_params(args):
+    if args.params:
+        return weights_lib.load_params(args.params)[0], args.params
+    if args.pretrained:
+        return weights_lib.pretrained(args.pretrained), f"pretrained:{args.pretrained}"
+    path = pathlib.Path(args.torch_state_dict)
+    if not path.is_file():
+        raise weights_lib.WeightsError(f"state dict {str(path)!r} does not exist")
+    import numpy as np
+
+    with np.load(path) as arrays:
+        return weights_lib.from_torch_state_dict({k: arrays[k] for k in arrays.files}), str(path)
+
+
+def run(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    if args.command == "collect":
+        config = data_lib.CollectConfig(crowd=args.crowd, num_envs=args.envs, steps=args.steps, seed=args.seed)
+        out = pathlib.Path(args.out)
+        print(f"collecting {config.frames:,} frames ({config.num_envs} envs x {config.steps} steps) of "
+              f"{config.crowd} crowds, seed {config.seed}", flush=True)
+        dataset = data_lib.collect(config, log=lambda s: print(s, flush=True))
+        path = data_lib.save_dataset(out, dataset)
+        print(f"wrote {path} ({config.frames:,} frames in {dataset['collect_seconds']:.1f} s)")
+        return 0
+    if args.command == "train":
+        config = train_lib.TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(train_lib.TrainConfig)})
+        dataset = data_lib.load_dataset(args.dataset)
+        run_dir = pathlib.Path(args.run_dir)
+        if args.fresh and (run_dir / "checkpoints").exists():
+            raise CheckpointError(f"--fresh: run directory {str(run_dir)!r} already holds checkpoints")
+        params, meta = train_lib.train(config, dataset, run_dir, log=lambda s: print(s, flush=True),
+                                       resume=not args.fresh)
+        meta.update(_provenance())
+        for target in [run_dir / "gst.npz"] + ([pathlib.Path(args.export)] if args.export else []):
+            print(f"wrote {weights_lib.save_params(target, params, meta)}")
+        return 0
+    # eval
+    if args.windows < 1:
+        raise ValueError(f"--windows = {args.windows} must be >= 1")
+    params, source = _load_params(args)
+    dataset = data_lib.load_dataset(args.dataset)
+    _, val_index = data_lib.split_index(dataset["arrays"])
+    evaluate = train_lib.make_evaluator(data_lib.device_arrays(dataset["arrays"]))
+    metrics = evaluate(params, train_lib.eval_subset(val_index, args.windows))
+    print(f"parameters: {source}")
+    print(train_lib.format_eval(metrics, f"{dataset['config']['crowd']} ({args.dataset})"))
+    if args.out:
+        out = pathlib.Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"params": source, "dataset": str(args.dataset), **metrics, **_provenance()},
+                                  indent=2))
+    return 0
+
+
+def main(argv=None):
+    try:
+        sys.exit(run(argv))
+    except _ERRORS as e:
+        print(f"tgrf-predictor: error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

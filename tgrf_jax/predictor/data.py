@@ -1,0 +1,236 @@
+"""Training data for the predictor, collected from the JAX simulator as CrowdNav++ records it.
+
+The robot is driven by ORCA and is invisible to the humans; episodes never end (collisions are ignored and a
+robot that reaches its goal gets a new one: half the time the median human position, half the time uniform
+in the arena). Each frame logs the robot position, every human's position, whether the robot sees the human
+(5 m edge-to-edge) and a per-slot segment counter that advances when a human re-enters the view or respawns,
+so a returning human is a new pedestrian. A dataset is a `.npz` of these arrays plus the config that made
+it (also beside it as JSON); the same config and seed give the same arrays.
+
+Windows are 10 frames (5 observed, 5 predicted) at stride 1, kept when at least one pedestrian is present in
+all 10. The first 80% of the envs (each one long episode) train, the last 20% validate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from tgrf_jax.env import scenario, sensing
+from tgrf_jax.env.crowd import CrowdNavEnv
+from tgrf_jax.env.types import EnvState, Obs
+from tgrf_jax.policies import OrcaPolicy
+from tgrf_jax.predictor.history import FILLER_OFFSET
+from tgrf_jax.predictor.model import OBS_LEN, PRED_LEN
+
+WINDOW = OBS_LEN + PRED_LEN
+CROWDS = ("orca", "social_force")
+TRAIN_FRACTION = 0.8
+_RESPAWN_JUMP = 1.0  # metres in one step: no human walks that far (v_pref <= 1.5 m/s, dt 0.25 s)
+_FORMAT = 1
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing, corrupt or inconsistent; the message names the path."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CollectConfig:
+    crowd: str = "orca"
+    num_envs: int = 512
+    steps: int = 4000
+    seed: int = 0
+    num_humans: int = 20
+    chunk: int = 250
+
+    def __post_init__(self):
+        if self.crowd not in CROWDS:
+            raise ValueError(f"crowd = {self.crowd!r} is not allowed; allowed: {', '.join(map(repr, CROWDS))}")
+        for name, low in (("num_envs", 5), ("steps", WINDOW), ("num_humans", 1), ("chunk", 1)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise ValueError(f"{name} = {value!r} must be an integer >= {low}")
+        if not isinstance(self.seed, int) or not 0 <= self.seed < 2**31:
+            raise ValueError(f"seed = {self.seed!r} must be an integer in [0, 2^31)")
+
+    @property
+    def frames(self) -> int:
+        return self.num_envs * self.steps
+
+    def env(self) -> CrowdNavEnv:
+        return CrowdNavEnv({"num_humans": self.num_humans, "human_policy": self.crowd, "predictor": "none"})
+
+
+@struct.dataclass
+class Recorder:
+    obs: Obs
+    state: EnvState
+    visible: jnp.ndarray  # (N,) bool, human-index order
+    seg: jnp.ndarray  # (N,) int32 segment counter per slot
+
+
+def _new_goal(key, state: EnvState, params):
+    """Half the time the median human position, half the time uniform in the arena."""
+    k_coin, k_pt = jax.random.split(key)
+    uniform = scenario.uniform(k_pt, (2,), -params.arena_size, params.arena_size)
+    median = jnp.median(state.humans.pos, axis=0)
+    return jnp.where(scenario.uniform(k_coin, ()) < 0.5, median, uniform)
+
+
+def make_recorder(config: CollectConfig):
+    """(init(key) -> Recorder, step(rec, key) -> (rec, frame)) for one env; vmap over envs."""
+    env = config.env()
+    params = env.default_params
+    robot_policy = OrcaPolicy()
+
+    def init(key):
+        obs, state = env.reset_env(key, params)
+        visible = sensing.visible_mask(state, params)
+        return Recorder(obs=obs, state=state, visible=visible, seg=jnp.zeros(visible.shape, jnp.int32))
+
+    def step(rec: Recorder, key):
+        k_step, k_goal = jax.random.split(key)
+        _, state, *_ = env.step_env(k_step, rec.state, robot_policy.action(rec.obs), params)
+        reached = jnp.linalg.norm(state.robot.pos - state.robot.goal) < params.goal_tolerance
+        goal = jnp.where(reached, _new_goal(k_goal, state, params), state.robot.goal)
+        state = state.replace(robot=state.robot.replace(goal=goal))
+        visible = sensing.visible_mask(state, params)
+        obs = sensing.observe(state, params, None, visible)
+        respawned = jnp.linalg.norm(state.humans.pos - rec.state.humans.pos, axis=-1) > _RESPAWN_JUMP
+        seg = rec.seg + (visible & (~rec.visible | respawned)).astype(jnp.int32)
+        frame = dict(robot_pos=state.robot.pos, human_pos=state.humans.pos, visible=visible, seg=seg)
+        return Recorder(obs=obs, state=state, visible=visible, seg=seg), frame
+
+    return init, step
+
+
+def collect(config: CollectConfig, log=print) -> dict:
+    """Run the collector; returns the dataset's arrays (env-major: (B, T, ...)) and its config."""
+    init, step = make_recorder(config)
+    b, t, n = config.num_envs, config.steps, config.num_humans
+    k_init, k_run = jax.random.split(jax.random.key(config.seed))
+    rec = jax.jit(jax.vmap(init))(jax.random.split(k_init, b))
+
+    @functools.partial(jax.jit, static_argnames="length")
+    def run_chunk(rec, key, length):
+        keys = jax.random.split(key, (length, b))
+        return jax.lax.scan(lambda r, k: jax.vmap(step)(r, k), rec, keys)
+
+    out = dict(robot_pos=np.zeros((b, t, 2), np.float32), human_pos=np.zeros((b, t, n, 2), np.float32),
+               visible=np.zeros((b, t, n), bool), seg=np.zeros((b, t, n), np.int32))
+    start = time.perf_counter()
+    done = 0
+    for c, key in enumerate(jax.random.split(k_run, -(-t // config.chunk))):
+        length = min(config.chunk, t - done)
+        rec, frames = run_chunk(rec, key, length)
+        for name, arr in frames.items():
+            out[name][:, done:done + length] = np.swapaxes(np.asarray(arr), 0, 1)
+        done += length
+        elapsed = time.perf_counter() - start
+        log(f"collect {config.crowd}: {done * b:,}/{config.frames:,} frames, {elapsed:.1f} s "
+            f"({done * b / elapsed:,.0f} frames/s)")
+    out["seg"] = out["seg"].astype(np.int16 if out["seg"].max() < 2**15 else np.int32)
+    return {"arrays": out, "config": dataclasses.asdict(config), "collect_seconds": time.perf_counter() - start}
+
+
+def save_dataset(path, dataset: dict) -> pathlib.Path:
+    """Write the arrays and config to `path` (.npz; config also as a .json beside it), atomically."""
+    path = pathlib.Path(path)
+    if path.suffix != ".npz":
+        path = path.with_suffix(".npz")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": _FORMAT, "config": dataset["config"], "collect_seconds": dataset.get("collect_seconds")}
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez(tmp, meta=np.array(json.dumps(meta)), **dataset["arrays"])
+    tmp.replace(path)
+    path.with_suffix(".json").write_text(json.dumps(meta, indent=2))
+    return path
+
+
+def load_dataset(path) -> dict:
+    """Load and check a dataset written by `save_dataset`."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise DatasetError(f"dataset {str(path)!r} does not exist (make one with `tgrf-predictor collect`)")
+    try:
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in ("robot_pos", "human_pos", "visible", "seg")}
+            meta = json.loads(str(data["meta"]))
+    except Exception as e:  # zip / pickle / key errors of a damaged file
+        raise DatasetError(f"dataset {str(path)!r} is corrupt or not a predictor dataset: "
+                           f"{type(e).__name__}: {e}") from e
+    if meta.get("format") != _FORMAT:
+        raise DatasetError(f"dataset {str(path)!r} has format {meta.get('format')!r}; this version reads {_FORMAT}")
+    b, t, n, _ = arrays["human_pos"].shape
+    expected = {"robot_pos": (b, t, 2), "visible": (b, t, n), "seg": (b, t, n)}
+    for name, shape in expected.items():
+        if arrays[name].shape != shape:
+            raise DatasetError(f"dataset {str(path)!r}: {name} has shape {arrays[name].shape}, expected {shape}")
+    if b < 2 or t < WINDOW:
+        raise DatasetError(f"dataset {str(path)!r} is too small ({b} envs x {t} steps; need >= 2 x {WINDOW})")
+    return {"arrays": arrays, "config": meta["config"], "collect_seconds": meta.get("collect_seconds")}
+
+
+# ------------------------------------------------------------------------------------------ windows
+def window_index(visible, seg, envs) -> np.ndarray:
+    """(W, 2) int32 (env, start) of the windows of `envs` with a pedestrian present in all 10 frames."""
+    rows = []
+    for b in envs:
+        vis = visible[b].astype(np.int32)  # (T, N)
+        csum = np.concatenate([np.zeros((1, vis.shape[1]), np.int32), np.cumsum(vis, 0)])
+        full = (csum[WINDOW:] - csum[:-WINDOW]) == WINDOW  # (T - 9, N) visible in all 10 frames
+        same = seg[b][WINDOW - 1:] == seg[b][:-(WINDOW - 1)]  # and no re-entry or respawn inside
+        starts = np.nonzero(np.any(full & same, axis=1))[0]
+        rows.append(np.stack([np.full_like(starts, b), starts], 1))
+    return np.concatenate(rows).astype(np.int32)
+
+
+def split_index(arrays) -> tuple[np.ndarray, np.ndarray]:
+    """Train / validation windows: the first 80% of the envs (episodes) train, the rest validate."""
+    b = arrays["visible"].shape[0]
+    cut = max(1, min(b - 1, int(round(TRAIN_FRACTION * b))))
+    return (window_index(arrays["visible"], arrays["seg"], range(cut)),
+            window_index(arrays["visible"], arrays["seg"], range(cut, b)))
+
+
+@struct.dataclass
+class Batch:
+    positions: jnp.ndarray  # (N, 5, 2) observed, absolute; unseen frames hold the env's filler
+    visible: jnp.ndarray  # (N, 5) bool
+    target: jnp.ndarray  # (N, 5, 2) true positions at t+1..t+5
+    target_valid: jnp.ndarray  # (N, 5) bool, present in that frame and the one before (displacement valid)
+
+
+def make_window(data: dict, env_start) -> Batch:
+    """One window from device arrays `data` (robot_pos, human_pos, visible, seg); jit/vmap-able.
+
+    A slot's pedestrian is its most recent segment seen in the observed frames; frames of other segments
+    (before a re-entry, after a respawn) count as absent.
+    """
+    b, s = env_start[0], env_start[1]
+    n = data["visible"].shape[-1]
+    take = lambda x: jax.lax.dynamic_slice(x, (b, s) + (0,) * (x.ndim - 2), (1, WINDOW) + x.shape[2:])[0]  # noqa: E731
+    pos, vis, seg, robot = take(data["human_pos"]), take(data["visible"]), take(data["seg"]), take(data["robot_pos"])
+    seg = seg.astype(jnp.int32)
+    ref = jnp.max(jnp.where(vis[:OBS_LEN], seg[:OBS_LEN], -1), axis=0)
+    present = vis & (seg == ref[None, :])  # (10, N)
+    filler = robot[:OBS_LEN, None, :] + FILLER_OFFSET
+    obs = jnp.where(present[:OBS_LEN, :, None], pos[:OBS_LEN], jnp.broadcast_to(filler, (OBS_LEN, n, 2)))
+    return Batch(
+        positions=jnp.swapaxes(obs, 0, 1),
+        visible=present[:OBS_LEN].T,
+        target=jnp.swapaxes(pos[OBS_LEN:], 0, 1),
+        target_valid=(present[OBS_LEN:] & present[OBS_LEN - 1:-1]).T,
+    )
+
+
+def device_arrays(arrays: dict) -> dict:
+    return {k: jnp.asarray(arrays[k]) for k in ("robot_pos", "human_pos", "visible", "seg")}

@@ -1,0 +1,259 @@
+"""Training and held-out evaluation of the predictor: bivariate Gaussian NLL, Adam with a step schedule,
+one compiled update (a scan of updates per call), orbax checkpoints with bit-identical resume.
+
+Recipe (GST.md, adapted to the data size): Adam at lr 1e-3, multiplied by 0.3 at every quarter of the run (the
+reference: every 25 of 100 epochs), 64 windows per update, dropout 0.1. The reference trains 100 epochs over
+~160k windows; our datasets hold ~10x more windows, so a run is counted in updates, not epochs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+
+from tgrf_jax.predictor import data as data_lib
+from tgrf_jax.predictor.model import PRED_LEN, StepGaussians, accumulate, init_params, step_gaussians
+from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+
+# CrowdNav++'s README, its non-rand model on its own ORCA test data (ADE / FDE over 1.25 s).
+YARDSTICK = {"ade": 0.158, "fde": 0.322}
+_CORR_LIMIT = 0.999  # keeps log(1 - rho^2) finite; tanh outputs saturate in float32 otherwise
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    updates: int = 6000
+    batch_size: int = 64
+    lr: float = 1e-3
+    decay_rate: float = 0.3
+    decay_every: int = 1500
+    seed: int = 0
+    log_every: int = 100
+    checkpoint_every: int = 1000
+    eval_windows: int = 20000
+    cv_prior: bool = True  # predict corrections to constant velocity (see tgrf_jax.predictor.model)
+
+    def __post_init__(self):
+        for name in ("updates", "batch_size", "decay_every", "log_every", "checkpoint_every", "eval_windows"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} = {value!r} must be an integer >= 1")
+        if not 0 < self.lr <= 1:
+            raise ValueError(f"lr = {self.lr!r} must be in (0, 1]")
+        if not 0 < self.decay_rate <= 1:
+            raise ValueError(f"decay_rate = {self.decay_rate!r} must be in (0, 1]")
+        if not isinstance(self.seed, int) or not 0 <= self.seed < 2**31:
+            raise ValueError(f"seed = {self.seed!r} must be an integer in [0, 2^31)")
+
+
+@struct.dataclass
+class TrainState:
+    params: dict
+    opt_state: optax.OptState
+    step: jnp.ndarray  # () int32 updates done
+    key: jnp.ndarray  # typed PRNG key data (uint32) of the run
+
+
+def schedule(config: TrainConfig):
+    """lr x decay_rate^floor(update / decay_every)."""
+    return optax.exponential_decay(config.lr, config.decay_every, config.decay_rate, staircase=True)
+
+
+def optimizer(config: TrainConfig):
+    return optax.adam(schedule(config))
+
+
+def displacements(batch: data_lib.Batch):
+    """True per-step displacements (N, 5, 2) from the last observed position."""
+    prev = jnp.concatenate([batch.positions[:, -1:], batch.target[:, :-1]], axis=1)
+    return batch.target - prev
+
+
+def nll_terms(g: StepGaussians, batch: data_lib.Batch):
+    """(per-step NLL (N, 5) without the log 2 pi constant, mask (N, 5)) as GST.md states the loss."""
+    corr = jnp.clip(g.corr, -_CORR_LIMIT, _CORR_LIMIT)
+    n = (displacements(batch) - g.mu) / g.sigma
+    nx, ny = n[..., 0], n[..., 1]
+    one_m = 1.0 - corr * corr
+    nll = (0.5 * jnp.log(one_m) + jnp.log(g.sigma[..., 0]) + jnp.log(g.sigma[..., 1])
+           + (nx * nx - 2.0 * corr * nx * ny + ny * ny) / (2.0 * one_m))
+    mask = batch.target_valid & g.out_mask[:, None]
+    return jnp.where(mask, nll, 0.0), mask
+
+
+def loss_fn(params, batch: data_lib.Batch, dropout_key):
+    """Mean NLL over the valid (human, step) pairs of a batch of windows (leading axis)."""
+    keys = jax.random.split(dropout_key, batch.positions.shape[0])
+    g = jax.vmap(lambda b, k: step_gaussians(params, b.positions, b.visible, dropout_key=k))(batch, keys)
+    nll, mask = jax.vmap(nll_terms)(g, batch)
+    return jnp.sum(nll) / jnp.maximum(jnp.sum(mask), 1)
+
+
+def train_chunk(state: TrainState, data: dict, index, config: TrainConfig, length: int):
+    """`length` updates -> (state, mean loss). Batches are drawn from `fold_in(key, step)`, so a resumed run
+    draws the same batches as an uninterrupted one."""
+    learning = (config.batch_size, config.lr, config.decay_every, config.decay_rate)  # what the program depends on
+    return _train_chunk(state, data, index, learning=learning, length=length)
+
+
+@functools.partial(jax.jit, static_argnames=("learning", "length"))
+def _train_chunk(state: TrainState, data: dict, index, *, learning: tuple, length: int):
+    batch_size, lr, decay_every, decay_rate = learning
+    config = TrainConfig(batch_size=batch_size, lr=lr, decay_every=decay_every, decay_rate=decay_rate)
+    opt = optimizer(config)
+    windows = jax.vmap(lambda es: data_lib.make_window(data, es))
+
+    def update(state: TrainState, _):
+        key = jax.random.fold_in(jax.random.wrap_key_data(state.key), state.step)
+        k_batch, k_drop = jax.random.split(key)
+        picks = jax.random.randint(k_batch, (config.batch_size,), 0, index.shape[0])
+        loss, grads = jax.value_and_grad(loss_fn)(state.params, windows(index[picks]), k_drop)
+        updates, opt_state = opt.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        return state.replace(params=params, opt_state=opt_state, step=state.step + 1), loss
+
+    state, losses = jax.lax.scan(update, state, None, length=length)
+    return state, jnp.mean(losses)
+
+
+def init_state(config: TrainConfig) -> TrainState:
+    key = jax.random.key(config.seed)
+    k_init, k_run = jax.random.split(key)
+    params = init_params(k_init, cv_prior=config.cv_prior)
+    return TrainState(params=params, opt_state=optimizer(config).init(params), step=jnp.zeros((), jnp.int32),
+                      key=jax.random.key_data(k_run))
+
+
+# ------------------------------------------------------------------------------------------ evaluation
+def eval_subset(index: np.ndarray, count: int) -> np.ndarray:
+    """`count` windows spread evenly over the held-out index (deterministic), or all if there are fewer."""
+    if len(index) <= count:
+        return index
+    return index[np.linspace(0, len(index) - 1, count).round().astype(np.int64)]
+
+
+def _window_sums(params, data: dict, env_start, weight):
+    """Sums for ADE / FDE (model and constant velocity) over one window's scored humans, and its NLL sum."""
+    b = data_lib.make_window(data, env_start)
+    g = step_gaussians(params, b.positions, b.visible)
+    pred = accumulate(g, b.positions[:, -1]).means
+    last, prev = b.positions[:, -1], b.positions[:, -2]
+    steps = jnp.arange(1, PRED_LEN + 1, dtype=jnp.float32)[None, :, None]
+    cv = last[:, None] + steps * (last - prev)[:, None]
+    w = (g.out_mask & jnp.all(b.target_valid, axis=1)).astype(jnp.float32) * weight
+    err = lambda p: jnp.linalg.norm(p - b.target, axis=-1)  # noqa: E731
+    nll, mask = nll_terms(g, b)
+    return dict(
+        humans=jnp.sum(w), ade=jnp.sum(w * jnp.mean(err(pred), -1)), fde=jnp.sum(w * err(pred)[:, -1]),
+        cv_ade=jnp.sum(w * jnp.mean(err(cv), -1)), cv_fde=jnp.sum(w * err(cv)[:, -1]),
+        nll=jnp.sum(nll) * weight, nll_count=jnp.sum(mask) * weight,
+    )
+
+
+@jax.jit
+def _eval_chunk(params, data: dict, index, weight):
+    sums = jax.vmap(_window_sums, in_axes=(None, None, 0, 0))(params, data, index, weight)
+    return jax.tree_util.tree_map(jnp.sum, sums)
+
+
+def make_evaluator(data: dict, chunk: int = 1000):
+    """evaluate(params, index (W, 2)) -> ADE / FDE / NLL of the model and ADE / FDE of constant velocity on
+    the same windows and humans: those the model predicts (seen in the last two observed frames) and that are
+    seen in all 5 future frames. NLL is over every valid predicted step, as the loss."""
+
+    def evaluate(params, index: np.ndarray) -> dict:
+        pad = (-len(index)) % chunk
+        padded = np.concatenate([index, np.repeat(index[:1], pad, 0)])
+        weight = (np.arange(len(padded)) < len(index)).astype(np.float32)
+        totals: dict = {}
+        for start in range(0, len(padded), chunk):
+            part = jax.device_get(_eval_chunk(params, data, padded[start:start + chunk], weight[start:start + chunk]))
+            for k, v in part.items():
+                totals[k] = totals.get(k, 0.0) + float(v)
+        h = max(totals["humans"], 1.0)
+        return {
+            "windows": int(len(index)), "humans": int(totals["humans"]),
+            "ade": totals["ade"] / h, "fde": totals["fde"] / h,
+            "nll": totals["nll"] / max(totals["nll_count"], 1.0),
+            "cv_ade": totals["cv_ade"] / h, "cv_fde": totals["cv_fde"] / h,
+        }
+
+    return evaluate
+
+
+def format_eval(metrics: dict, label: str) -> str:
+    y = YARDSTICK
+    return "\n".join([
+        f"held-out {label}: {metrics['windows']:,} windows, {metrics['humans']:,} predicted humans seen for 1.25 s",
+        f"  {'predictor':<28} {'ADE m':>7} {'FDE m':>7} {'NLL':>7}",
+        f"  {'GST (this model)':<28} {metrics['ade']:>7.3f} {metrics['fde']:>7.3f} {metrics['nll']:>7.3f}",
+        f"  {'constant velocity':<28} {metrics['cv_ade']:>7.3f} {metrics['cv_fde']:>7.3f} {'-':>7}",
+        f"  {'CrowdNav++ non-rand (README)':<28} {y['ade']:>7.3f} {y['fde']:>7.3f} {'-':>7}   (its own ORCA data)",
+    ])
+
+
+# ------------------------------------------------------------------------------------------ run
+_EXTENSIBLE = ("updates", "checkpoint_every", "eval_windows")  # may change when a run is resumed
+
+
+def _run_meta(config: TrainConfig, dataset_config: dict) -> dict:
+    return {"train": dataclasses.asdict(config), "dataset": dataset_config}
+
+
+def _fixed(meta: dict) -> dict:
+    return {"train": {k: v for k, v in meta["train"].items() if k not in _EXTENSIBLE}, "dataset": meta["dataset"]}
+
+
+def train(config: TrainConfig, dataset: dict, run_dir, log=print, resume: bool = True) -> tuple[dict, dict]:
+    """Train (resuming from `run_dir`'s latest checkpoint if there is one); returns (params, run metadata)."""
+    run_dir = pathlib.Path(run_dir)
+    meta = _run_meta(config, dataset["config"])
+    meta_path = run_dir / "run.json"
+    if meta_path.is_file():
+        saved, wanted = _fixed(json.loads(meta_path.read_text())), _fixed(meta)
+        if saved != wanted:
+            diff = sorted(k for part in ("train", "dataset") for k in set(saved[part]) | set(wanted[part])
+                          if saved[part].get(k) != wanted[part].get(k))
+            raise CheckpointError(f"run directory {str(run_dir)!r} holds a run with another config (differs in "
+                                  f"{', '.join(diff)}); use a new --run-dir or the same options")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    meta_path.write_text(json.dumps(meta, indent=2, sort_keys=True))
+
+    arrays = dataset["arrays"]
+    train_index, val_index = data_lib.split_index(arrays)
+    log(f"windows: {len(train_index):,} train, {len(val_index):,} held out")
+    data = data_lib.device_arrays(arrays)
+    ckpt = Checkpointer(run_dir / "checkpoints", keep=2)
+    state = init_state(config)
+    if resume and ckpt.latest_step() is not None:
+        state = ckpt.restore(state)
+        log(f"resumed from {run_dir / 'checkpoints'} at update {int(state.step)}")
+    index = jnp.asarray(train_index)
+    start = time.perf_counter()
+    while int(state.step) < config.updates:
+        left = config.updates - int(state.step)
+        before, tick = int(state.step), time.perf_counter()
+        state, loss = train_chunk(state, data, index, config, min(left, config.log_every))
+        step = int(state.step)
+        rate = (step - before) / (time.perf_counter() - tick)  # this chunk's (the first includes compilation)
+        lr = schedule(config)(step - 1)
+        log(f"update {step:>6}/{config.updates}  loss {float(loss):8.4f}  lr {float(lr):.2e}  "
+            f"{rate:6.1f} updates/s ({rate * config.batch_size:,.0f} windows/s)")
+        if step % config.checkpoint_every == 0 or step == config.updates:
+            ckpt.save(step, state)
+    ckpt.close()
+    meta["train_seconds_this_process"] = time.perf_counter() - start
+    evaluate = make_evaluator(data)
+    metrics = evaluate(state.params, eval_subset(val_index, config.eval_windows))
+    meta["eval"] = {k: float(v) for k, v in metrics.items()}
+    log(format_eval(metrics, dataset["config"].get("crowd", "?")))
+    return jax.device_get(state.params), meta
