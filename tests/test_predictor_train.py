@@ -11,7 +11,7 @@ import pytest
 from tgrf_jax import predictor
 from tgrf_jax.predictor import data as data_lib
 from tgrf_jax.predictor import train as train_lib
-from tgrf_jax.predictor import cli
+from tgrf_jax.cli import predictor as cli
 from tgrf_jax.predictor.model import StepGaussians
 
 

@@ -1,6 +1,7 @@
-"""The command-line tools: tgrf-train, tgrf-eval, tgrf-sweep, tgrf-render and tgrf-reproduce, one module each with
-its `main` (`common` holds the shared config / `--set` / run-directory arguments and the process setup). The
-functions below import their tool on call, so `python -m tgrf_jax.cli.<tool>` runs a module not imported before."""
+"""The command-line tools: tgrf-train, tgrf-eval, tgrf-sweep, tgrf-render, tgrf-reproduce and tgrf-predictor, one
+module each with its `main` (`common` holds the shared config / `--set` / run-directory arguments and the process
+setup). The functions below import their tool on call, so `python -m tgrf_jax.cli.<tool>` runs a module not
+imported before."""
 
 
 def train_main(argv=None) -> int:
@@ -29,5 +30,11 @@ def render_main(argv=None) -> int:
 
 def reproduce_main(argv=None) -> int:
     from tgrf_jax.cli.reproduce import main
+
+    return main(argv)
+
+
+def predictor_main(argv=None) -> int:
+    from tgrf_jax.cli.predictor import main
 
     return main(argv)
