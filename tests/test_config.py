@@ -1,9 +1,12 @@
 import pathlib
+import re
 
 import pytest
 
 from tgrf_jax import CrowdNavEnv
-from tgrf_jax.config import ConfigError, EnvConfig, RewardConfig, apply_overrides, load_yaml, reward_config_from_dict
+from tgrf_jax.config import (
+    ConfigError, EnvConfig, RewardConfig, TrainConfig, apply_overrides, load_yaml, reward_config_from_dict,
+)
 
 CONFIGS = pathlib.Path(__file__).resolve().parents[1] / "configs"
 
@@ -77,3 +80,23 @@ def test_overrides_parse_yaml_scalars():
     assert data == {"env": {"num_humans": 5, "predictor": "none"}, "reward": {"h_disc": 2.0}}
     with pytest.raises(ConfigError, match="section.field=value"):
         apply_overrides({}, ["env.num_humans"])
+
+
+@pytest.mark.parametrize("text, message", [
+    ("ppo:\n  lr: 1.0e-4\nppo:\n  num_envs: 8\n", "found duplicate key 'ppo' (first given on line 1)"),
+    ("env:\n  dt: 0.25\n  dt: 0.1\n", "found duplicate key 'dt' (first given on line 2)"),
+])
+def test_duplicate_yaml_keys_are_rejected(tmp_path, text, message):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        TrainConfig.from_yaml(path)
+
+
+def test_non_utf8_and_directory_configs_are_named(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_bytes(b"env:\n  dt: 0.25 \xff\xfe\n")
+    with pytest.raises(ConfigError, match="is not UTF-8 text"):
+        TrainConfig.from_yaml(path)
+    with pytest.raises(ConfigError, match="is a directory, not a YAML file"):
+        TrainConfig.from_yaml(tmp_path)
