@@ -166,9 +166,15 @@ def _provenance_commit(row_dir: pathlib.Path) -> str | None:
 def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, export_to=None) -> int:
     """Run every unfinished row of `exp` into `out`, rewriting the report after each row; returns an exit code.
     With `export_to`, each finished row's best policies are exported there (`export_best`)."""
+    from tgrf_jax.train.lock import exclusive
+
     out = pathlib.Path(out)
     check_out_dir(exp, out)
-    out.mkdir(parents=True, exist_ok=True)
+    with exclusive(out):
+        return _reproduce(exp, out, log, export_to)
+
+
+def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to) -> int:
     _record(exp, out)
     log_file = open(out / LOG_FILE, "a", buffering=1)
 

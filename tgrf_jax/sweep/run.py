@@ -32,6 +32,7 @@ from tgrf_jax.sweep.program import SweepBatch, barrier
 from tgrf_jax.sweep.report import RUNS_DIR, format_summary_markdown, plot_sweep, write_results
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
 from tgrf_jax.train.curves import CURVE_FIELDS, EVAL_CURVE_CSV, PeriodicEvaluation
+from tgrf_jax.train.lock import exclusive
 from tgrf_jax.train.progress import CSV_FIELDS, CsvWriter, LogFile, ProgressPrinter, run_rows
 from tgrf_jax.train.runner import train_runs
 
@@ -73,10 +74,25 @@ def run_sweep(
     """Train every run of `spec` in `sweep_dir` as one batch (or resume the sweep there: `spec=None, resume=True`).
 
     `devices` (default: all, `jax.devices()`; or the first `num_devices` of them) carry the run axis.
-    `stop_after_updates` ends early, as an interruption would (for tests)."""
+    `stop_after_updates` ends early, as an interruption would (for tests). Process 0 holds the sweep directory's
+    lock while it writes there (`tgrf_jax.train.lock`)."""
     import jax
 
     sweep_dir = pathlib.Path(sweep_dir)
+    if resume:
+        load_sweep(sweep_dir)  # a clear error for a directory that holds no sweep
+    elif (sweep_dir / SWEEP_FILE).exists():
+        raise ConfigError(f"sweep directory {str(sweep_dir)!r} already holds a sweep; use --resume or another --out")
+    if jax.process_index() != 0:
+        return _run_sweep(spec, sweep_dir, resume, log, stop_after_updates, devices, num_devices, export_checkpoints)
+    with exclusive(sweep_dir):
+        return _run_sweep(spec, sweep_dir, resume, log, stop_after_updates, devices, num_devices, export_checkpoints)
+
+
+def _run_sweep(spec, sweep_dir: pathlib.Path, resume, log, stop_after_updates, devices, num_devices,
+               export_checkpoints) -> SweepResult:
+    import jax
+
     main = jax.process_index() == 0
     ckpt_dir = sweep_dir / CHECKPOINT_DIR
     if resume:

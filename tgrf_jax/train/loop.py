@@ -24,6 +24,7 @@ import numpy as np
 from tgrf_jax.config import ConfigError, TrainConfig, load_yaml
 from tgrf_jax.train import shards
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+from tgrf_jax.train.lock import exclusive
 from tgrf_jax.train.curves import (
     CURVE_FIELDS, EVAL_CURVE_CSV, EVAL_CURVE_PNG, PeriodicEvaluation, plot_curves, read_curve,
 )
@@ -117,8 +118,18 @@ def train_run(
     log: Callable[[str], None] = print,
     stop_after_updates: int | None = None,
 ) -> RunResult:
-    """Train `config` in `run_dir` (or resume the run there). `stop_after_updates` ends early (for tests)."""
+    """Train `config` in `run_dir` (or resume the run there). `stop_after_updates` ends early (for tests).
+    The process holds the run directory's lock while it writes there (`tgrf_jax.train.lock`)."""
     run_dir = pathlib.Path(run_dir)
+    if resume:
+        load_run_config(run_dir)  # a clear error for a directory that holds no run
+    elif (run_dir / CONFIG_FILE).exists():
+        raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; use --resume or another --out-dir")
+    with exclusive(run_dir):
+        return _train_run(config, run_dir, resume, log, stop_after_updates)
+
+
+def _train_run(config, run_dir: pathlib.Path, resume: bool, log, stop_after_updates) -> RunResult:
     ckpt_dir = run_dir / CHECKPOINT_DIR
     if resume:
         config = load_run_config(run_dir)

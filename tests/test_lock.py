@@ -1,0 +1,55 @@
+"""One writer per run / sweep / experiment directory."""
+
+import pathlib
+import subprocess
+import sys
+import time
+
+import pytest
+
+from tgrf_jax.config import ConfigError, TrainConfig
+from tgrf_jax.train.lock import OWNER_FILE, exclusive
+from tgrf_jax.train.loop import train_run
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = str(ROOT / "configs" / "tiny.yaml")
+HOLD = "import sys, time; from tgrf_jax.train.lock import exclusive\nwith exclusive(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)"
+
+
+@pytest.fixture
+def held(tmp_path):
+    """A directory whose lock another process holds."""
+    directory = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, str(directory)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "held"
+    yield directory, proc.pid
+    proc.kill()
+    proc.wait()
+
+
+def test_second_writer_is_refused_naming_the_directory_and_the_holder(held):
+    directory, pid = held
+    with pytest.raises(ConfigError, match=rf"is being written by another process \(pid {pid}\)"):
+        with exclusive(directory):
+            pass
+    assert (directory / OWNER_FILE).read_text().strip() == str(pid)
+
+
+def test_train_run_refuses_a_directory_in_use(held):
+    directory, pid = held
+    with pytest.raises(ConfigError, match=rf"{directory.name}' is being written by another process \(pid {pid}\)"):
+        train_run(TrainConfig.from_yaml(TINY), directory, log=lambda m: None)
+    assert not (directory / "config.yaml").exists()
+
+
+def test_the_lock_goes_with_its_process(held):
+    directory, pid = held
+    subprocess.run(["kill", "-9", str(pid)], check=True)
+    deadline = time.time() + 10
+    while True:
+        try:
+            with exclusive(directory):
+                break
+        except ConfigError:
+            assert time.time() < deadline
+            time.sleep(0.1)
