@@ -53,3 +53,18 @@ def test_the_lock_goes_with_its_process(held):
         except ConfigError:
             assert time.time() < deadline
             time.sleep(0.1)
+
+
+def test_resume_of_a_run_stopped_before_its_first_checkpoint_starts_from_scratch(tmp_path):
+    from tgrf_jax.train.loop import params_digest
+
+    config = TrainConfig.from_yaml(TINY, ["run.eval_episodes=0"])
+    fresh = train_run(config, tmp_path / "fresh", log=lambda m: None)
+    stopped = tmp_path / "stopped"
+    stopped.mkdir()
+    (stopped / "config.yaml").write_text(config.to_yaml())  # what a kill during start-up leaves
+    lines = []
+    resumed = train_run(config, stopped, resume=True, log=lines.append)
+    assert any("starting from the beginning" in line for line in lines)
+    assert resumed.updates == fresh.updates == 12
+    assert params_digest(resumed.state.params) == params_digest(fresh.state.params)

@@ -100,8 +100,6 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, log, stop_after_updates, d
         if spec is not None and spec.to_dict() != loaded.to_dict():
             raise ConfigError(f"{str(sweep_dir)!r} holds a different sweep than the one given")
         spec = loaded
-        if not ckpt_dir.is_dir():
-            raise CheckpointError(f"cannot resume: checkpoint directory {str(ckpt_dir)!r} does not exist")
     elif (sweep_dir / SWEEP_FILE).exists():
         raise ConfigError(f"sweep directory {str(sweep_dir)!r} already holds a sweep; use --resume or another --out")
     if devices is None:
@@ -126,7 +124,7 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, log, stop_after_updates, d
     say = LogFile(sweep_dir / LOG_FILE, log, enabled=main)
     program = SweepBatch(runs, devices)
     run_cfg = runs[0].config.run
-    ckpt = Checkpointer(ckpt_dir, keep=run_cfg.keep_checkpoints, create=not resume)
+    ckpt = Checkpointer(ckpt_dir, keep=run_cfg.keep_checkpoints, create=True)  # a run stopped before its first checkpoint has none yet
     say(f"sweep of {len(runs)} runs ({len(spec.points())} grid points x {len(spec.seeds)} seeds)")
     for a in spec.axes:
         say(f"  grid {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")

@@ -133,8 +133,6 @@ def _train_run(config, run_dir: pathlib.Path, resume: bool, log, stop_after_upda
     ckpt_dir = run_dir / CHECKPOINT_DIR
     if resume:
         config = load_run_config(run_dir)
-        if not ckpt_dir.is_dir():
-            raise CheckpointError(f"cannot resume: checkpoint directory {str(ckpt_dir)!r} does not exist")
     else:
         if (run_dir / CONFIG_FILE).exists():
             raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; use --resume or another --out-dir")
@@ -143,7 +141,7 @@ def _train_run(config, run_dir: pathlib.Path, resume: bool, log, stop_after_upda
 
     say = LogFile(run_dir / LOG_FILE, log)
     program = SoloProgram(config)
-    ckpt = Checkpointer(ckpt_dir, keep=config.run.keep_checkpoints, create=not resume)
+    ckpt = Checkpointer(ckpt_dir, keep=config.run.keep_checkpoints, create=True)  # a run stopped before its first checkpoint has none yet
     writers = [CsvWriter(run_dir / METRICS_FILE, run_rows(0)), TensorBoardWriter(run_dir / "tb"),
                ProgressPrinter(say)]
     curve_writers = []

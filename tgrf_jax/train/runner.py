@@ -89,10 +89,12 @@ def train_runs(
     `stop_after_updates` ends early, as an interruption would (for tests)."""
     total, batch, G = program.num_updates, program.batch_size, program.num_runs
     start_time = time.perf_counter()
-    if resume:
-        step = checkpointer.latest_step()
-        if step is None:
-            raise CheckpointError(f"cannot resume: no checkpoint in {str(checkpointer.directory)!r}")
+    step = checkpointer.latest_step() if resume else None
+    if resume and step is None:
+        say("no checkpoint yet (the run stopped before its first one): starting from the beginning")
+        for fn in (*progress_fns, *state_fns):
+            getattr(fn, "truncate", lambda update: 0.0)(0)
+    if step is not None:
         state, start = program.restore(checkpointer, step)
         if start != step:
             raise CheckpointError(f"checkpoint {str(checkpointer.directory / str(step))!r} holds update {start}, "
