@@ -68,3 +68,16 @@ def test_resume_of_a_run_stopped_before_its_first_checkpoint_starts_from_scratch
     assert any("starting from the beginning" in line for line in lines)
     assert resumed.updates == fresh.updates == 12
     assert params_digest(resumed.state.params) == params_digest(fresh.state.params)
+
+
+def test_resume_refuses_config_edits_other_than_extending_training(tmp_path):
+    config = TrainConfig.from_yaml(TINY, ["run.eval_episodes=0"])
+    run = tmp_path / "run"
+    train_run(config, run, log=lambda m: None, stop_after_updates=4)
+    text = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(text.replace("lr: 0.001", "lr: 0.002").replace("num_humans: 2", "num_humans: 3"))
+    with pytest.raises(ConfigError, match=r"only ppo.total_steps may change .*ppo.lr: 0.001 -> 0.002") as e:
+        train_run(config, run, resume=True, log=lambda m: None)
+    assert "env.num_humans: 2 -> 3" in str(e.value)
+    (run / "config.yaml").write_text(text.replace("total_steps: 1536", "total_steps: 2048"))
+    assert train_run(config, run, resume=True, log=lambda m: None).updates == 16

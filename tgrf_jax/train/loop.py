@@ -1,7 +1,9 @@
 """A tgrf-train run directory: one run trained by the runner (`tgrf_jax.train.runner`), restored, evaluated.
 
 Run directory:
-    config.yaml          resolved TrainConfig (every field, after overrides)
+    config.yaml          resolved TrainConfig (every field, after overrides); ppo.total_steps may be raised before
+                         --resume to extend training
+    config.started.yaml  the config the run started with (any other edit of config.yaml is refused on --resume)
     metrics.csv          one row per compiled chunk (reduced scalars only)
     progress.log         the progress lines printed to stdout
     checkpoints/<update>/  orbax checkpoints of the full TrainState (atomic; the last `run.keep_checkpoints` kept)
@@ -33,6 +35,8 @@ from tgrf_jax.train.progress import CsvWriter, LogFile, ProgressPrinter, TensorB
 from tgrf_jax.train.runner import EVAL_FILE, train_runs
 
 CONFIG_FILE = "config.yaml"
+STARTED_FILE = "config.started.yaml"  # the config the run started with: what --resume checks edits against
+RESUME_EDITABLE = ("ppo.total_steps",)  # "extend training"
 METRICS_FILE = "metrics.csv"
 CURVE_FILE = "learning_curve.png"
 CHECKPOINT_DIR = "checkpoints"
@@ -45,6 +49,21 @@ __all__ = ["EVAL_FILE", "RunResult", "SoloProgram", "evaluate_params", "evaluate
 def default_run_dir(config: TrainConfig, root="runs") -> pathlib.Path:
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     return pathlib.Path(root) / f"{stamp}_{config.run.name}"
+
+
+def check_resume_config(run_dir, config: TrainConfig) -> None:
+    """Edits of config.yaml since the run started: only `RESUME_EDITABLE` fields may change (raises ConfigError
+    listing every other difference, before anything compiles)."""
+    started = pathlib.Path(run_dir) / STARTED_FILE
+    if not started.is_file():
+        return
+    old, new = TrainConfig.from_dict(load_yaml(started)).to_dict(), config.to_dict()
+    diffs = [f"{section}.{key}: {old[section].get(key)!r} -> {value!r}"
+             for section, fields in new.items() for key, value in fields.items()
+             if old[section].get(key) != value and f"{section}.{key}" not in RESUME_EDITABLE]
+    if diffs:
+        raise ConfigError(f"{str(pathlib.Path(run_dir) / CONFIG_FILE)!r} was edited since the run started; on --resume "
+                          f"only {', '.join(RESUME_EDITABLE)} may change (to extend training), not: {'; '.join(diffs)}")
 
 
 def load_run_config(run_dir) -> TrainConfig:
@@ -133,15 +152,18 @@ def _train_run(config, run_dir: pathlib.Path, resume: bool, log, stop_after_upda
     ckpt_dir = run_dir / CHECKPOINT_DIR
     if resume:
         config = load_run_config(run_dir)
+        check_resume_config(run_dir, config)
     else:
         if (run_dir / CONFIG_FILE).exists():
             raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; use --resume or another --out-dir")
         run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / STARTED_FILE).write_text(config.to_yaml())
         (run_dir / CONFIG_FILE).write_text(config.to_yaml())
 
     say = LogFile(run_dir / LOG_FILE, log)
     program = SoloProgram(config)
-    ckpt = Checkpointer(ckpt_dir, keep=config.run.keep_checkpoints, create=True)  # a run stopped before its first checkpoint has none yet
+    # created if missing: a run stopped before its first checkpoint has none yet
+    ckpt = Checkpointer(ckpt_dir, keep=config.run.keep_checkpoints, create=True)
     writers = [CsvWriter(run_dir / METRICS_FILE, run_rows(0)), TensorBoardWriter(run_dir / "tb"),
                ProgressPrinter(say)]
     curve_writers = []
