@@ -8,6 +8,8 @@ from tgrf_jax.config import (
     ConfigError, EnvConfig, RewardConfig, TrainConfig, apply_overrides, load_yaml, reward_config_from_dict,
 )
 
+from helpers import CompileCounter
+
 CONFIGS = pathlib.Path(__file__).resolve().parents[1] / "configs"
 
 
@@ -46,8 +48,9 @@ def test_bad_reward_config():
 
 def test_error_is_raised_before_any_tracing():
     # Constructing the environment validates; no jax computation is needed to see the error.
-    with pytest.raises(ConfigError, match="env.sensor_range"):
+    with CompileCounter() as counter, pytest.raises(ConfigError, match="env.sensor_range"):
         CrowdNavEnv({"sensor_range": -1.0})
+    assert counter.traces == counter.compiles == 0
 
 
 def test_reward_config_scheme_defaults_and_overrides():

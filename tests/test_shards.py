@@ -94,7 +94,8 @@ def test_shards_on_two_devices_match_shards_vmapped_on_one():
     """The same config on one CPU device per shard (shard_map) and vmapped on one device: the same numbers up to
     float rounding (a fresh process: the device count is fixed when JAX starts)."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    out = subprocess.run([sys.executable, "-c", PLACEMENTS], env=env, capture_output=True, text=True, timeout=300)
+    # the timeout is a hang guard for a busy machine, not a speed check
+    out = subprocess.run([sys.executable, "-c", PLACEMENTS], env=env, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["devices"] == 2
