@@ -201,7 +201,7 @@ def test_cli_renders_run_dir(tmp_path, capsys):
     (["{tmp}/nope"], "'{tmp}/nope' does not exist (expected a tgrf-train run directory or a YAML config)"),
     (["{tmp}"], "is not a tgrf-train run directory"),
     (["{tmp}/cfg.yaml"], "is a config file: name the robot with --policy straight|orca"),
-    ([], "give a RUN_DIR or --policy straight|orca"),
+    ([], "give a RUN_DIR, --pretrained NAME or --policy straight|orca"),
     (["--policy", "orca", "--set", "env.num_human=3"], "unknown config key 'env.num_human' (did you mean 'num_humans'?)"),
     (["--policy", "orca", "--set", "env.human_policy=teleport"],
      "env.human_policy = 'teleport' is not allowed; allowed: one of 'orca', 'social_force'"),

@@ -79,13 +79,7 @@ def test_print_config_applies_overrides(capsys):
 
 
 def test_missing_and_corrupt_checkpoints_fail_clearly(tiny_run, tmp_path, capsys):
-    # missing: a run dir whose checkpoints are gone
-    gone = tmp_path / "gone"
-    shutil.copytree(tiny_run, gone)
-    shutil.rmtree(gone / "checkpoints")
-    assert train_main(["--resume", str(gone)]) == 2
-    err = capsys.readouterr().err
-    assert str(gone / "checkpoints") in err
+    # (a run dir without checkpoints resumes from scratch: tests/test_lock.py)
     # not a run dir at all
     assert train_main(["--resume", str(tmp_path)]) == 2
     assert "config.yaml" in capsys.readouterr().err

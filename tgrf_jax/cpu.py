@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import platform
 
 WIDTH_FLAG = "--xla_cpu_prefer_vector_width"
 DEVICE_COUNT_FLAG = "--xla_force_host_platform_device_count"
@@ -62,3 +63,14 @@ def configure_cpu(devices: int | None = None, *, wide_vectors: bool = True) -> d
     if added:
         os.environ["XLA_FLAGS"] = " ".join([flags] + [f"{k}={v}" for k, v in added.items()]).strip()
     return added
+
+
+def cpu_model() -> str:
+    """The processor's model name (Linux /proc/cpuinfo; else what `platform` knows), for recording results."""
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()

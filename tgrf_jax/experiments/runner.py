@@ -12,7 +12,6 @@ import datetime
 import json
 import os
 import pathlib
-import platform
 import shutil
 import subprocess
 import sys
@@ -50,15 +49,9 @@ def source_commit() -> str:
 
 
 def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {len(os.sched_getaffinity(0))} cores"
+    from tgrf_jax.cpu import cpu_model
+
+    return f"{cpu_model()}, {len(os.sched_getaffinity(0))} cores"
 
 
 def row_state(row_dir: pathlib.Path) -> str:
