@@ -10,21 +10,21 @@ from tgrf_jax.env import COLLISION, RUNNING, SUCCESS, TIMEOUT
 @pytest.mark.parametrize("policy", ["orca", "social_force"])
 @pytest.mark.parametrize("predictor, dim", [("none", 2), ("const_vel", 12), ("truth", 12)])
 def test_shapes_jit_vmap(policy, predictor, dim):
-    env = make_env(num_humans=6, human_policy=policy, predictor=predictor)
+    env = make_env(num_humans=3, human_policy=policy, predictor=predictor)
     params = env.default_params
     keys = jax.random.split(jax.random.key(0), 4)
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
-    assert obs.humans.shape == (4, 6, dim) and obs.human_mask.shape == (4, 6) and obs.robot_node.shape == (4, 7)
+    assert obs.humans.shape == (4, 3, dim) and obs.human_mask.shape == (4, 3) and obs.robot_node.shape == (4, 7)
     step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
     obs, state, reward, term, trunc, info = step(keys, state, jnp.ones((4, 2)), params)
-    assert reward.shape == (4,) and term.dtype == bool and info.final_obs.humans.shape == (4, 6, dim)
+    assert reward.shape == (4,) and term.dtype == bool and info.final_obs.humans.shape == (4, 3, dim)
     assert np.all(np.isfinite(np.asarray(state.humans.pos)))
 
 
 def test_reset_scenario_rules():
     env = make_env()
     params = env.default_params
-    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(1), 64), params)
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(1), 64), params)
     start, goal = np.asarray(state.robot.pos), np.asarray(state.robot.goal)
     assert np.all(np.abs(start) <= 6) and np.all(np.abs(goal) <= 6)
     assert np.all(np.linalg.norm(start - goal, axis=-1) >= 8.0)
@@ -182,9 +182,9 @@ def test_unicycle_kinematics_limits():
     assert float(reward) < 0  # backwards motion is penalised
 
 
-@pytest.mark.parametrize("num_resets", [1, 4, 64])
+@pytest.mark.parametrize("num_resets", [1, 64])  # fewer resets than finished envs, and as many as there are envs
 def test_step_batch_shares_fresh_episodes_among_finished_envs(num_resets):
-    env = make_env(num_humans=20, predictor="none")
+    env = make_env(num_humans=10, predictor="none")
     params = env.default_params
     n_envs, n_steps = 32, 40
     act = jax.vmap(to_goal)
@@ -202,7 +202,7 @@ def test_step_batch_shares_fresh_episodes_among_finished_envs(num_resets):
 
     before, after, obs, done = run(jax.random.key(7))
     done = np.asarray(done)
-    assert done.sum() > 10  # straight to goal through 20 humans: plenty of collisions
+    assert done.sum() > 10  # straight to goal through 10 humans: plenty of collisions
     steps_before, steps_after = np.asarray(before.step_count), np.asarray(after.step_count)
     np.testing.assert_array_equal(steps_after, np.where(done, 0, steps_before + 1))
     start = np.asarray(after.robot.pos)
@@ -225,7 +225,8 @@ def test_step_batch_shares_fresh_episodes_among_finished_envs(num_resets):
 def test_orca_neighbor_distance_is_drawn_per_episode_and_fixed_within_it():
     env = make_env(num_humans=4)
     params = env.default_params
-    _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(5), 256), params)
+    reset = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
+    _, state = reset(jax.random.split(jax.random.key(5), 256), params)
     nd = np.asarray(state.orca_neighbor_dist)
     assert np.all((nd >= 5.0) & (nd < 10.0)) and nd.std() > 1.0  # U(5, 10): std 1.44
     states = rollout(env, jax.random.key(6), params, 30, to_goal)[0]
@@ -234,7 +235,7 @@ def test_orca_neighbor_distance_is_drawn_per_episode_and_fixed_within_it():
     same_episode = ~fresh[1:]
     np.testing.assert_array_equal(drawn[1:][same_episode], drawn[:-1][same_episode])
     fixed = env.default_params.replace(orca_neighbor_dist_min=jnp.float32(7.0), orca_neighbor_dist_max=jnp.float32(7.0))
-    _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(5), 8), fixed)
+    _, state = reset(jax.random.split(jax.random.key(5), 256), fixed)
     np.testing.assert_array_equal(state.orca_neighbor_dist, 7.0)
 
 

@@ -20,37 +20,46 @@ def test_straight_policy_without_humans_always_succeeds():
     assert result.itr_disc == 0.0 and result.itr_future == 0.0 and math.isnan(result.intrusion_dist_disc)
 
 
+# Compiling an episode loop costs far more than running it, so the tests below share one env and one batch shape
+# (evaluate() compiles one program per env, policy and batch size, kept for the whole module).
+ENV = make_env(num_humans=10, predictor="none")
+BATCH = 16
+
+
 def test_episodes_are_distinct_and_rates_sum_to_one():
-    env = make_env(num_humans=10, predictor="none")
-    params = env.default_params
-    stats = jax.jit(run_episodes, static_argnums=(0, 1, 3))(env, StraightPolicy(), jax.random.key(1), 32, params)
+    import tgrf_jax.evaluate as ev
+
+    params = ENV.default_params
+    key = jax.random.key(1)
+    # Batch 0 of evaluate() is run_episodes with fold_in(key, 0): the same program and episodes.
+    stats = ev._run_episodes_jit(ENV, StraightPolicy(), jax.random.fold_in(key, 0), BATCH, params)
     outcome = np.asarray(stats.outcome)
     assert np.all(np.isin(outcome, [1, 2, 3]))
-    result = evaluate(env, StraightPolicy(), jax.random.key(1), 32)
+    result = evaluate(ENV, StraightPolicy(), key, BATCH)
+    assert result.success_rate == pytest.approx(np.mean(outcome == 1))
     assert result.success_rate + result.collision_rate + result.timeout_rate == pytest.approx(1.0)
     # Different episodes start from different scenarios.
-    k_reset, _ = jax.random.split(jax.random.key(1))
-    _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, 32), params)
-    assert len(np.unique(np.round(np.asarray(state.robot.pos), 4), axis=0)) == 32
+    k_reset, _ = jax.random.split(jax.random.fold_in(key, 0))
+    _, state = jax.jit(jax.vmap(ENV.reset, in_axes=(0, None)))(jax.random.split(k_reset, BATCH), params)
+    assert len(np.unique(np.round(np.asarray(state.robot.pos), 4), axis=0)) == BATCH
 
 
 def test_orca_robot_collides_less_than_straight():
-    env = make_env(num_humans=20, predictor="none")
     key = jax.random.key(2)
-    straight = evaluate(env, StraightPolicy(), key, 64)
-    orca = evaluate(env, OrcaPolicy(), key, 64)
-    assert straight.collision_rate > 0.3  # 20 invisible-to-nobody humans crossing: a blind robot hits them
+    straight = evaluate(ENV, StraightPolicy(), key, 4 * BATCH, batch_size=BATCH)
+    orca = evaluate(ENV, OrcaPolicy(), key, 4 * BATCH, batch_size=BATCH)
+    assert straight.collision_rate > 0.3  # humans crossing a blind robot's path: it hits them
     assert orca.collision_rate < straight.collision_rate
     assert orca.itr_future >= 0.0 and straight.itr_future > 0.0
     table = format_table({"straight": straight, "orca": orca})
-    assert table.count("\n") == 3 and "| straight | 64 |" in table
+    assert table.count("\n") == 3 and f"| straight | {4 * BATCH} |" in table
 
 
 def test_batched_evaluation_is_deterministic():
-    env = make_env(num_humans=5, predictor="none")
-    a = evaluate(env, StraightPolicy(), jax.random.key(3), 20, batch_size=8)
-    b = evaluate(env, StraightPolicy(), jax.random.key(3), 20, batch_size=8)
+    a = evaluate(ENV, StraightPolicy(), jax.random.key(3), 2 * BATCH, batch_size=BATCH)
+    b = evaluate(ENV, StraightPolicy(), jax.random.key(3), 2 * BATCH, batch_size=BATCH)
     assert a == b
+    assert a != evaluate(ENV, StraightPolicy(), jax.random.key(4), 2 * BATCH, batch_size=BATCH)
 
 
 def test_bad_arguments():
@@ -63,12 +72,13 @@ def test_bad_arguments():
 def test_episodes_run_in_bounded_batches_with_progress(monkeypatch):
     import tgrf_jax.evaluate as ev
 
-    env = make_env(num_humans=2)
     calls = []
-    monkeypatch.setattr(ev, "MAX_BATCH", 4)
-    batched = evaluate(env, StraightPolicy(), jax.random.key(3), 10, progress=lambda d, n: calls.append((d, n)))
-    assert calls == [(4, 10), (8, 10), (10, 10)] and batched.n_episodes == 10
-    explicit = evaluate(env, StraightPolicy(), jax.random.key(3), 10, batch_size=4)
+    monkeypatch.setattr(ev, "MAX_BATCH", BATCH)
+    batched = evaluate(ENV, StraightPolicy(), jax.random.key(3), 3 * BATCH,
+                       progress=lambda d, n: calls.append((d, n)))
+    assert calls == [(BATCH, 3 * BATCH), (2 * BATCH, 3 * BATCH), (3 * BATCH, 3 * BATCH)]
+    assert batched.n_episodes == 3 * BATCH
+    explicit = evaluate(ENV, StraightPolicy(), jax.random.key(3), 3 * BATCH, batch_size=BATCH)
     assert batched == explicit
     with pytest.raises(ValueError, match="batch_size = 0 must be >= 1"):
-        evaluate(env, StraightPolicy(), jax.random.key(3), 10, batch_size=0)
+        evaluate(ENV, StraightPolicy(), jax.random.key(3), 10, batch_size=0)

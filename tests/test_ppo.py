@@ -172,10 +172,10 @@ def test_chunking_does_not_change_the_result():
 def test_gradient_microbatches_give_the_same_update():
     """Accumulating a minibatch's gradient over env slices is the same update, up to float rounding."""
     results = []
-    for microbatch_envs in (0, 2, 1):
+    for microbatch_envs in (0, 1):
         cfg = tiny_config(env={"num_humans": 3, "predictor": "const_vel"}, network={"name": "hh_attn"},
                           ppo={"microbatch_envs": microbatch_envs})
-        assert cfg.ppo.num_microbatches == {0: 1, 2: 2, 1: 4}[microbatch_envs]
+        assert cfg.ppo.num_microbatches == {0: 1, 1: 4}[microbatch_envs]
         t = make_train(cfg)
         state, metrics = t.run_chunk(t.init(jax.random.PRNGKey(0), t.default_hparams), 2)
         results.append((np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(state.params)]), metrics))
