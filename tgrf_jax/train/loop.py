@@ -90,7 +90,7 @@ class SoloProgram:
         return self.train.init(self.key, self.train.default_hparams)
 
     def restore(self, checkpointer: Checkpointer, step: int):
-        template = jax.eval_shape(self.train.init, self.key, self.train.default_hparams)
+        template = jax.eval_shape(self.train.trainer.init, self.key, self.train.default_hparams)
         state = self.train.place(checkpointer.restore(template, step))
         return state, int(state.update)
 
@@ -215,7 +215,7 @@ def restore_run(run_dir, step: int | None = None) -> tuple[TrainConfig, TrainSta
     config = load_run_config(run_dir)
     t = make_train(config)
     ckpt = Checkpointer(run_dir / CHECKPOINT_DIR, keep=config.run.keep_checkpoints, create=False)
-    template = jax.eval_shape(t.init, jax.random.PRNGKey(0), t.default_hparams)
+    template = jax.eval_shape(t.trainer.init, jax.random.PRNGKey(0), t.default_hparams)
     try:
         state = ckpt.restore(template, step)
     finally:
