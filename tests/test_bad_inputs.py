@@ -168,7 +168,8 @@ CASES = {
     "resume with --set": ("tgrf-train", ["--resume", "{run}", "--set", "ppo.lr=1e-3"],
                           "--resume RUN_DIR takes no config file, --set or --out-dir"),
     "from-step without resume": ("tgrf-train", [TINY, "--from-step", "4"],
-                                 "--from-step N continues a run from one of its checkpoints: it needs --resume RUN_DIR"),
+                                 "--from-step N continues a run from one of its checkpoints: it needs --resume "
+                                 "RUN_DIR"),
     "resume of an edited config": ("tgrf-train", ["--resume", "{edited}"],
                                    "was edited since the run started; on --resume only ppo.total_steps may change"),
     "eval: step of a config": (*evaluate(TINY, "--step", "3"), "--step selects a checkpoint of a RUN_DIR"),
@@ -176,6 +177,8 @@ CASES = {
     "eval: no such step": (*evaluate("{run}", "--step", "5"),
                            "checkpoint '{run}/checkpoints/5' does not exist (available steps: [0])"),
     "eval: damaged": (*evaluate("{damaged}"), "checkpoint '{damaged}/checkpoints/0' (step 0) is damaged"),
+    "eval: unreadable": (*evaluate("{garbage}"), "checkpoint '{garbage}/checkpoints/0' (step 0) is damaged: it cannot "
+                         "be read"),
     "eval: network mismatch": (*evaluate("{mismatch}"), "checkpoint '{mismatch}/checkpoints/0' does not fit this "
                                "config: opt_state: 21,131 values in the checkpoint"),
     "eval: no checkpoints": (*evaluate("{nockpt}"), "checkpoint directory '{nockpt}/checkpoints' does not exist"),
@@ -207,7 +210,8 @@ def _flip_a_bit(step_dir):
 @pytest.fixture(scope="module")
 def places(tmp_path_factory):
     """Files and directories the cases name: bad config files, a file where a directory belongs, and tiny run
-    directories with their initial checkpoint (intact, damaged, not fitting its config, without checkpoints)."""
+    directories with their initial checkpoint (intact, a flipped bit, overwritten, not fitting its config, without
+    checkpoints, config edited) and a sweep stopped before its first checkpoint."""
     import yaml
 
     from tgrf_jax.config import TrainConfig
@@ -224,9 +228,12 @@ def places(tmp_path_factory):
     (tmp / "foo.yaml").write_text("foo:\n  x: 1\nenv:\n  num_humans: 2\n")
     config = TrainConfig.from_yaml(TINY, ["run.eval_episodes=0"])
     train_run(config, tmp / "run", log=lambda m: None, stop_after_updates=0)  # config + the initial checkpoint
-    for name in ("damaged", "mismatch", "nockpt", "edited"):
+    for name in ("damaged", "garbage", "mismatch", "nockpt", "edited"):
         shutil.copytree(tmp / "run", tmp / name)
     _flip_a_bit(tmp / "damaged" / "checkpoints" / "0")
+    for f in (tmp / "garbage" / "checkpoints" / "0").rglob("*"):
+        if f.is_file():
+            f.write_text("garbage")
     text = (tmp / "run" / "config.yaml").read_text()
     (tmp / "mismatch" / "config.yaml").write_text(text.replace("size: small", "size: paper"))
     shutil.rmtree(tmp / "nockpt" / "checkpoints")
@@ -239,7 +246,7 @@ def places(tmp_path_factory):
     return tmp
 
 
-RUN_DIRS = ("run", "damaged", "mismatch", "nockpt", "edited", "sweep")
+RUN_DIRS = ("run", "damaged", "garbage", "mismatch", "nockpt", "edited", "sweep")
 
 
 def _run(places, capsys, tool, argv, expected):
@@ -284,18 +291,25 @@ def test_the_catalogue_is_large_and_names_what_it_should():
         assert sum(word in expected for *_, expected in CASES.values()) >= 3, kind
 
 
-def test_a_damaged_checkpoint_ends_the_process_with_its_error_alone(places):
-    """The whole stderr of a process stopped by a damaged checkpoint: the error, no log lines of orbax's, nothing
+@pytest.mark.parametrize("tool, argv, error", [
+    ("train", ["--resume", "{damaged}"], "tgrf-train: error: checkpoint '{damaged}/checkpoints/0' (step 0) is "
+     "damaged: its content does not match the checksum written with it; no earlier step is intact"),
+    ("eval", ["{garbage}"], "tgrf-eval: error: checkpoint '{garbage}/checkpoints/0' (step 0) is damaged: it cannot "
+     "be read (JSONDecodeError: Expecting value: line 1 column 1 (char 0)); no earlier step is intact"),
+])
+def test_a_damaged_checkpoint_ends_the_process_with_its_error_alone(places, tool, argv, error):
+    """The whole stderr of a process stopped by a damaged checkpoint: the error; no log lines of orbax's, nothing
     from its event loop at exit."""
     import os
     import subprocess
     import sys
 
+    def fmt(text):
+        return text.replace("{damaged}", str(places / "damaged")).replace("{garbage}", str(places / "garbage"))
+
     env = dict(os.environ, JAX_PLATFORMS="cpu", TGRF_JAX_COMPILE_CACHE="off",
                PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
-    out = subprocess.run([sys.executable, "-m", "tgrf_jax.cli.train", "--resume", str(places / "damaged")], env=env,
+    out = subprocess.run([sys.executable, "-m", f"tgrf_jax.cli.{tool}", *map(fmt, argv)], env=env,
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 2
-    assert out.stderr.splitlines() == [f"tgrf-train: error: checkpoint '{places / 'damaged' / 'checkpoints' / '0'}' "
-                                       "(step 0) is damaged: its content does not match the checksum written with "
-                                       "it; no earlier step is intact"]
+    assert out.stderr.splitlines() == [fmt(error)]

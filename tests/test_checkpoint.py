@@ -70,7 +70,8 @@ def test_a_step_that_does_not_fit_says_what_it_holds(saved):
     bigger = state(0)
     bigger["params"]["w"] = np.zeros(4000, np.float32)
     with pytest.raises(CheckpointError, match=r"does not fit this config: params: 2,003 values in the checkpoint, "
-                                              r"4,003 here \(e.g. params/w \(2000,\) in the checkpoint, \(4000,\) here\)"):
+                                              r"4,003 here \(e.g. params/w \(2000,\) in the checkpoint, \(4000,\) "
+                                              r"here\)"):
         saved.restore(bigger)
     renamed = state(0)
     renamed["params"]["v"] = renamed["params"].pop("w")
@@ -101,15 +102,19 @@ def test_steps_written_before_checksums_restore_and_mix_with_new_ones(tmp_path):
     ckpt.close()
 
 
-def test_a_writer_removes_the_leftover_of_a_save_killed_mid_commit(saved, tmp_path):
+def test_a_writer_removes_the_leftover_of_a_save_killed_mid_commit(saved):
     leftover = saved.directory / "16.orbax-checkpoint-tmp"  # orbax's name for step 16 before its commit
     leftover.mkdir()
     (leftover / "half_written").write_bytes(b"x")
     assert saved.all_steps() == [0, 4, 8, 12]
-    Checkpointer(saved.directory, create=False).close()  # a reader leaves it
-    assert leftover.exists()
-    Checkpointer(saved.directory).close()
-    assert not leftover.exists()
+    reader = Checkpointer(saved.directory, create=False)
+    assert tree_digest(reader.restore(state(0))) == tree_digest(state(12))
+    reader.close()
+    assert leftover.exists()  # a reader leaves it
+    writer = Checkpointer(saved.directory, keep=5)
+    writer.save(20, state(20))  # a writer has removed it by the time its first save returns
+    writer.close()
+    assert not leftover.exists() and saved.all_steps() == [0, 4, 8, 12, 20]
 
 
 def test_a_run_without_humans_checkpoints_and_resumes(tmp_path):

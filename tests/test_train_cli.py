@@ -114,7 +114,8 @@ def test_resume_of_a_finished_run_trains_and_evaluates_nothing(tiny_run, tmp_pat
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
     (run / "learning_curve.png").unlink()
-    kept = {p: p.stat().st_mtime_ns for p in [run / "eval.json", run / "metrics.csv", *(run / "checkpoints").rglob("*")]}
+    kept = {p: p.stat().st_mtime_ns
+            for p in [run / "eval.json", run / "metrics.csv", *(run / "checkpoints").rglob("*")]}
     with CompileCounter() as counter:
         assert train_main(["--resume", str(run)]) == 0
     assert counter.compiles == 0

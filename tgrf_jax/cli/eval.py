@@ -7,8 +7,8 @@ import sys
 import time
 
 from tgrf_jax.cli.common import (
-    add_config_args, add_pretrained_arg, check_jax, check_seed, check_writable, checkpoint_error, episode_progress, error,
-    scenario, start, write_json,
+    add_config_args, add_pretrained_arg, check_jax, check_seed, check_writable, checkpoint_error, episode_progress,
+    error, scenario, start, write_json,
 )
 from tgrf_jax.config import MAX_EPISODES, ConfigError
 

@@ -11,7 +11,8 @@ import sys
 import time
 
 from tgrf_jax.cli.common import (
-    add_config_args, add_pretrained_arg, check_jax, check_seed, check_writable, checkpoint_error, error, scenario, start,
+    add_config_args, add_pretrained_arg, check_jax, check_seed, check_writable, checkpoint_error, error, scenario,
+    start,
 )
 from tgrf_jax.config import MAX_EPISODES, ConfigError
 
@@ -134,9 +135,8 @@ def main(argv: list[str] | None = None) -> int:
         for b in range(batches):
             first, size = b * per_batch, min(per_batch, args.episodes - b * per_batch)
             t0 = time.perf_counter()
-            print(f"{label}: recording {size} episode(s)"
-                  + (f" ({first}-{first + size - 1} of {args.episodes}, batch {b + 1}/{batches})" if batches > 1 else "")
-                  + " ...", flush=True)
+            where = f" ({first}-{first + size - 1} of {args.episodes}, batch {b + 1}/{batches})" if batches > 1 else ""
+            print(f"{label}: recording {size} episode(s){where} ...", flush=True)
             episodes = [dataclasses.replace(ep, index=first + ep.index)
                         for ep in record_episodes(env, policy, eval_key(args.seed, b), size, label=label)]
             print(f"  recorded in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)

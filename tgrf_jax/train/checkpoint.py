@@ -3,7 +3,7 @@ each with a checksum of its content.
 
 Orbax writes each step into a temporary directory and renames it only once every file is on disk (its atomic
 "finalize"), so a process killed mid-save leaves a `*.orbax-checkpoint-tmp-*` directory that `latest_step`
-ignores (and the next writer removes), never a half-written step. Saves here are synchronous: when `save`
+ignores (and the next writer removes before its first save), never a half-written step. Saves here are synchronous: when `save`
 returns, the step is final.
 
 A step holds the state (item "default") and, written in the same atomic save, the SHA-256 of its arrays (item
@@ -79,7 +79,8 @@ def _stored_shape(x) -> tuple:
 
 @contextlib.contextmanager
 def _quiet_orbax():
-    """Orbax logs every unreadable file through absl before raising; the raised error is what gets reported."""
+    """Orbax logs every unreadable file through absl (also while listing steps); a damaged step is reported by the
+    error `restore` raises instead."""
     logger = logging.getLogger("absl")
     level = logger.level
     logger.setLevel(logging.CRITICAL)
@@ -97,11 +98,14 @@ class Checkpointer:
         options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, enable_async_checkpointing=False,
                                                cleanup_tmp_directories=create)
         # named items: a directory may hold steps with and without a digest (a run resumed across versions)
-        self._manager = ocp.CheckpointManager(self.directory, options=options, item_names=(STATE_ITEM, DIGEST_ITEM))
+        with _quiet_orbax():
+            self._manager = ocp.CheckpointManager(self.directory, options=options,
+                                                  item_names=(STATE_ITEM, DIGEST_ITEM))
 
     def all_steps(self) -> list[int]:
-        self._manager.reload()
-        return sorted(self._manager.all_steps())
+        with _quiet_orbax():
+            self._manager.reload()
+            return sorted(self._manager.all_steps())
 
     def latest_step(self) -> int | None:
         steps = self.all_steps()
