@@ -14,12 +14,22 @@ import pytest
 
 from helpers import CompileCounter
 
-from tgrf_jax.cli import eval_main, render_main, reproduce_main, sweep_main, train_main
+from tgrf_jax.cli import eval_main, predictor_main, render_main, reproduce_main, sweep_main, train_main
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
+def _exit_status(main):
+    """tgrf-predictor's main exits instead of returning its status."""
+    def run(argv):
+        try:
+            return main(argv)
+        except SystemExit as e:
+            return e.code
+    return run
+
+
 MAINS = {"tgrf-train": train_main, "tgrf-eval": eval_main, "tgrf-sweep": sweep_main, "tgrf-render": render_main,
-         "tgrf-reproduce": reproduce_main}
+         "tgrf-reproduce": reproduce_main, "tgrf-predictor": _exit_status(predictor_main)}
 UNWRITABLE = "/sys/tgrf-out"  # the kernel refuses new files under /sys, even to root
 FRESH = "{tmp}/fresh"  # an output path that must still not exist after the error
 
@@ -163,6 +173,11 @@ CASES = {
                                  "--out '{tmp}/occupied' is a file, not a directory"),
     "reproduce: out unwritable": ("tgrf-reproduce", ["table1", "--out", UNWRITABLE],
                                   f"--out '{UNWRITABLE}' is not writable"),
+    "predictor: dataset unwritable": ("tgrf-predictor", ["collect", "--out", UNWRITABLE + "/d.npz"],
+                                      f"--out '{UNWRITABLE}/d.npz' is not writable"),
+    "predictor: run dir is a file": ("tgrf-predictor", ["train", "--dataset", "{tmp}/d.npz", "--run-dir",
+                                                        "{tmp}/occupied"],
+                                     "--run-dir '{tmp}/occupied' exists and is not a directory"),
     "resume: not a run": ("tgrf-train", ["--resume", "{tmp}/adir"], "is not a tgrf-train run directory"),
     "resume: not a sweep": ("tgrf-sweep", ["--resume", "{tmp}/adir"], "is not a tgrf-sweep directory"),
     "resume with --set": ("tgrf-train", ["--resume", "{run}", "--set", "ppo.lr=1e-3"],
