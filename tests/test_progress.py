@@ -46,7 +46,10 @@ def test_csv_writer_appends_and_truncates_to_a_checkpoint(tmp_path):
 
 
 def test_chunk_plan_cuts_at_every_period():
-    assert chunk_plan(0, 12, 5, 4) == [4, 1, 3, 2, 2]  # log (5, 10) and checkpoint (4, 8, 12) multiples
-    assert chunk_plan(4, 12, 5, 4) == [1, 3, 2, 2]  # absolute boundaries: the same chunks after a resume
-    assert chunk_plan(0, 12, 5, 4, 3) == [3, 1, 1, 1, 2, 1, 1, 2]  # an extra period (e.g. periodic evaluation)
+    assert list(chunk_plan(0, 12, 5, 4)) == [4, 1, 3, 2, 2]  # log (5, 10) and checkpoint (4, 8, 12) multiples
+    assert list(chunk_plan(4, 12, 5, 4)) == [1, 3, 2, 2]  # absolute boundaries: the same chunks after a resume
+    assert list(chunk_plan(0, 12, 5, 4, 3)) == [3, 1, 1, 1, 2, 1, 1, 2]  # an extra period (e.g. periodic evaluation)
     assert sum(chunk_plan(3, 1000, 7, 50)) == 997
+    # lazy: the largest run allowed (2^31 - 1 one-update chunks) starts at once instead of listing its chunks first
+    plan = chunk_plan(0, 2**31 - 1, 1, 1)
+    assert [next(plan) for _ in range(3)] == [1, 1, 1]

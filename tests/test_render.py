@@ -181,6 +181,25 @@ def test_cli_renders_baseline(tmp_path, capsys, episodes):
             ep.steps % 2)
 
 
+def test_cli_records_long_renders_in_batches(tmp_path, capsys, monkeypatch, env, episodes):
+    from tgrf_jax.render import record
+
+    monkeypatch.setattr(record, "RECORD_STEPS", 64)  # two 32-step episodes per batch (the scan compiled already)
+    out = tmp_path / "out"
+    args = ["--policy", "straight", "--episodes", "4", "--out", str(out), "--no-frames", "--dpi", "20"]
+    assert render_main(args + sum((["--set", s] for s in CLI_SETS), [])) == 0
+    text = capsys.readouterr().out
+    assert "straight: recording 2 episode(s) (0-1 of 4, batch 1/2)" in text
+    assert "straight: recording 2 episode(s) (2-3 of 4, batch 2/2)" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert [e["episode"] for e in summary["episodes"]] == [0, 1, 2, 3]
+    assert all((out / "straight" / f"ep{i:03d}.gif").is_file() for i in range(4))
+    # batch b is played with evaluate's key of batch b
+    second = render.record_episodes(env, StraightPolicy(), render.eval_key(0, 1), 2)
+    assert [(e["steps"], e["outcome"]) for e in summary["episodes"]] == [
+        (ep.steps, ep.outcome) for ep in [*episodes, *second]]
+
+
 def test_cli_renders_run_dir(tmp_path, capsys):
     from tgrf_jax.config import TrainConfig
     from tgrf_jax.train.loop import train_run
@@ -206,8 +225,8 @@ def test_cli_renders_run_dir(tmp_path, capsys):
     (["--policy", "orca", "--set", "env.human_policy=teleport"],
      "env.human_policy = 'teleport' is not allowed; allowed: one of 'orca', 'social_force'"),
     (["--policy", "orca", "--set", "reward.sigma_disc=0"], "reward.sigma_disc = 0.0 is out of range"),
-    (["--policy", "orca", "--set", "ppo.lr=1"], "unknown config section(s) ['ppo']; tgrf-render reads: env, reward"),
-    (["--policy", "orca", "--episodes", "0"], "--episodes = 0 must be >= 1"),
+    (["--policy", "orca", "--set", "ppo.lr=1"], "only those can be overridden, not ['ppo.lr=1']"),
+    (["--policy", "orca", "--episodes", "0"], "--episodes = 0 is out of range; allowed: 1 .. 10,000,000"),
     (["--policy", "orca", "--fps", "0"], "--fps = 0.0 must be > 0"),
     (["--policy", "orca", "--step", "3"], "--step selects a checkpoint of a RUN_DIR"),
     (["--policy", "orca", "--out", "{tmp}/cfg.yaml"], "exists and is not a directory"),

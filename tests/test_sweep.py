@@ -10,6 +10,7 @@ import json
 import math
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -184,6 +185,59 @@ def test_resume_after_interruption_matches_uninterrupted(sweep, tmp_path):
     assert len(_rows(out / "metrics.csv")) == 6 * 6  # the rows of the re-run chunk are not duplicated
 
 
+def _flip_a_bit(step_dir):
+    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
+               key=lambda p: p.stat().st_size)
+    raw = bytearray(data.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    data.write_bytes(bytes(raw))
+
+
+def test_resume_of_a_finished_sweep_recreates_its_results(sweep, tmp_path):
+    out = tmp_path / "copy"
+    shutil.copytree(sweep, out)
+    # what a kill during the final evaluation leaves: no evaluations, tables, plots or exported run checkpoints
+    for name in ("evals.csv", "summary.csv", "summary.md", "learning_curves.png", "grid_metrics.png"):
+        (out / name).unlink()
+    for name in NAMES:
+        (out / "runs" / name / "eval.json").unlink()
+        shutil.rmtree(out / "runs" / name / "checkpoints")
+    kept = {p: p.stat().st_mtime_ns for p in [out / "metrics.csv", *(out / "checkpoints").rglob("*")]}
+    with CompileCounter() as counter:  # trains nothing; the evaluation program is the one compiled for `sweep`
+        assert main(["--resume", str(out)]) == 0
+    assert counter.compiles == 0
+    for name in ("evals.csv", "summary.csv", "summary.md"):
+        assert (out / name).read_text() == (sweep / name).read_text(), name
+    assert (out / "grid_metrics.png").stat().st_size > 0
+    for name in NAMES:
+        _assert_evals(sweep / "runs" / name / "eval.json", out / "runs" / name / "eval.json", exact=True)
+        _assert_states(restore_run(sweep / "runs" / name)[1], restore_run(out / "runs" / name)[1], exact=True)
+    assert {p: p.stat().st_mtime_ns for p in kept} == kept
+
+    # once more, now that nothing is missing: the run directories are left as they are
+    kept = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*")}
+    assert main(["--resume", str(out)]) == 0
+    assert {p: p.stat().st_mtime_ns for p in kept} == kept
+
+
+def test_damaged_checkpoint_names_intact_steps_and_resumes_from_one(sweep, tmp_path, capsys):
+    out = tmp_path / "copy"
+    shutil.copytree(sweep, out)
+    _flip_a_bit(out / "checkpoints" / "12")
+    assert main(["--resume", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "(step 12) is damaged: its content does not match the checksum" in err
+    assert "intact earlier steps: 4, 8" in err and f"tgrf-sweep --resume {out} --from-step 8" in err
+    assert main(["--resume", str(out), "--from-step", "8"]) == 0
+    assert sorted(int(p.name) for p in (out / "checkpoints").iterdir() if p.name.isdigit()) == [4, 8, 12]
+    for name in NAMES:  # updates 9-12 trained again: bit-identical to the uninterrupted sweep
+        _assert_states(restore_run(sweep / "runs" / name)[1], restore_run(out / "runs" / name)[1], exact=True)
+        _assert_curves(sweep / "runs" / name / "metrics.csv", out / "runs" / name / "metrics.csv", exact=True)
+        _assert_evals(sweep / "runs" / name / "eval.json", out / "runs" / name / "eval.json", exact=True)
+    assert len(_rows(out / "metrics.csv")) == 6 * 6
+    assert (out / "summary.md").read_text() == (sweep / "summary.md").read_text()
+
+
 def test_sharded_over_4_devices_matches_unsharded(sweep, tmp_path):
     """The same sweep on 4 fake CPU devices (6 runs padded to 8, 2 per device) in a subprocess."""
     out = tmp_path / "sharded"
@@ -246,6 +300,7 @@ def _grid_errors(tmp_path, capsys):
     assert "Griddable (traced) fields: ppo.lr, ppo.gamma" in e and "reward.sigma_disc" in e
     assert "cannot be gridded" in err("--grid", "network.size=small,paper")
     assert "cannot be gridded" in err("--grid", "env.num_humans=2,4")
+    assert "seeds are not a grid axis; give them with --seeds N" in err("--grid", "run.seed=0,1")
     assert "--grid reward.sigma_disc=-1: reward.sigma_disc = -1.0 is out of range; allowed: > 0.0" in err(
         "--grid", "reward.sigma_disc=0.2,-1")
     assert "ppo.lr = 2.0 is out of range; allowed: > 0.0 and <= 1.0" in err("--grid", "ppo.lr=1e-3,2")

@@ -17,7 +17,7 @@ from helpers import CompileCounter
 
 from tgrf_jax.cli import eval_main, train_main
 from tgrf_jax.train.checkpoint import CheckpointError
-from tgrf_jax.train.loop import params_digest, restore_run
+from tgrf_jax.train.loop import load_run_config, params_digest, restore_run, train_run
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -45,12 +45,18 @@ def test_train_writes_all_artifacts(tiny_run):
     assert "eval_episodes: 8" in (tiny_run / "config.yaml").read_text()
 
 
-def test_eval_run_dir(tiny_run, tmp_path):
+def test_eval_run_dir(tiny_run, tmp_path, monkeypatch, capsys):
+    import tgrf_jax.evaluate
+
+    monkeypatch.setattr(tgrf_jax.evaluate, "MAX_BATCH", 3)  # 6 episodes: two batches, with a progress line each
     out = tmp_path / "eval.json"
     assert eval_main([str(tiny_run), "--episodes", "6", "--policy", "straight", "--out", str(out)]) == 0
     payload = json.loads(out.read_text())
     assert set(payload["results"]) == {"learned", "straight"} and payload["update"] == 12
     assert {r["n_episodes"] for r in payload["results"].values()} == {6}
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.strip() for line in lines if "/6 episodes" in line] == [
+        "learned: 3/6 episodes", "learned: 6/6 episodes", "straight: 3/6 episodes", "straight: 6/6 episodes"]
 
 
 def test_config_errors_before_compile(tmp_path, capsys):
@@ -94,6 +100,52 @@ def test_missing_and_corrupt_checkpoints_fail_clearly(tiny_run, tmp_path, capsys
         restore_run(bad)
     assert eval_main([str(bad), "--episodes", "2"]) == 2
     assert str(latest) in capsys.readouterr().err
+
+
+def _flip_a_bit(step_dir):
+    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
+               key=lambda p: p.stat().st_size)
+    raw = bytearray(data.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    data.write_bytes(bytes(raw))
+
+
+def test_resume_of_a_finished_run_trains_and_evaluates_nothing(tiny_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    (run / "learning_curve.png").unlink()
+    kept = {p: p.stat().st_mtime_ns
+            for p in [run / "eval.json", run / "metrics.csv", *(run / "checkpoints").rglob("*")]}
+    with CompileCounter() as counter:
+        assert train_main(["--resume", str(run)]) == 0
+    assert counter.compiles == 0
+    assert (run / "learning_curve.png").stat().st_size > 0  # the missing result file is made again
+    assert {p: p.stat().st_mtime_ns for p in kept} == kept
+
+
+def test_damaged_checkpoint_names_intact_steps_and_resumes_from_one(tiny_run, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    _flip_a_bit(run / "checkpoints" / "12")
+    with pytest.raises(CheckpointError, match="is damaged") as e:
+        restore_run(run)
+    assert (e.value.step, e.value.intact) == (12, (4, 8))
+    with CompileCounter() as counter:
+        assert train_main(["--resume", str(run)]) == 2
+        err = capsys.readouterr().err
+        assert f"'{run / 'checkpoints' / '12'}' (step 12) is damaged" in err and "intact earlier steps: 4, 8" in err
+        assert f"tgrf-train --resume {run} --from-step 8" in err
+        assert eval_main([str(run), "--episodes", "2"]) == 2
+        assert f"tgrf-eval {run} --step 8" in capsys.readouterr().err
+        assert train_main(["--resume", str(run), "--from-step", "6"]) == 2
+        assert "--from-step 6: " in (err := capsys.readouterr().err) and "it holds: 4, 8, 12" in err
+    assert counter.compiles == 0
+    # --from-step 8: the later checkpoints go, the CSV is cut back to 8 and the stale evaluation removed (stopped
+    # there, as an interruption would; tests/test_sweep.py trains such a resume to the end)
+    train_run(load_run_config(run), run, resume=True, from_step=8, log=lambda m: None, stop_after_updates=8)
+    assert sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit()) == [4, 8]
+    assert [int(r["update"]) for r in csv.DictReader(open(run / "metrics.csv"))] == [2, 4, 6, 8]
+    assert not (run / "eval.json").exists()
 
 
 def _cli(args, **kw):

@@ -13,12 +13,13 @@ import dataclasses
 import math
 from typing import Any, Mapping
 
+import numpy as np
 import yaml
 
 from tgrf_jax import reward as reward_lib
 from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
-    ConfigError, _coerce, _unknown_key_error, apply_overrides, check_fields, from_dict, load_yaml, spec, traced,
-    traced_names,
+    ConfigError, _coerce, _unknown_key_error, apply_overrides, check_fields, check_traced, concrete, first_where,
+    from_dict, load_yaml, spec, traced, traced_names,
 )
 
 __all__ = [
@@ -96,6 +97,12 @@ _ResolvedReward = _resolved_reward_class()
 # Allowed human counts: the reference scenario uses 20; spawning on a 6*sqrt(2) m circle cannot seat many more
 # without overlaps.
 MAX_HUMANS = 200
+# Time: steps of at least 10 ms and episodes of at most 1000 s keep an episode within 100,000 steps (int32 step
+# counters, evaluation loops and recordings that end).
+MIN_DT = 0.01
+MAX_EPISODE_SECONDS = 1000.0
+# Episodes of one evaluation: their per-episode statistics stay on the host (about 40 bytes each).
+MAX_EPISODES = 10_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,8 +131,9 @@ class EnvConfig:
     orca_max_neighbors: int = spec(-1, low=-1, high=MAX_HUMANS, doc="-1: all other humans")
 
     # --- numeric (traced) --------------------------------------------------------------------------
-    dt: float = traced(0.25, low=0.0, high=1.0, low_inclusive=False)
-    time_limit: float = traced(50.0, low=0.0, low_inclusive=False, doc="seconds; reaching it truncates")
+    dt: float = traced(0.25, low=MIN_DT, high=1.0, doc="seconds per step")
+    time_limit: float = traced(50.0, low=0.0, high=MAX_EPISODE_SECONDS, low_inclusive=False,
+                               doc="seconds; reaching it truncates")
     arena_size: float = traced(6.0, low=0.0, low_inclusive=False, doc="robot start/goal ~ U(-a, a)^2")
     min_start_goal_dist: float = traced(8.0, low=0.0)
     circle_radius: float = traced(6.0 * math.sqrt(2.0), low=0.0, low_inclusive=False)
@@ -139,7 +147,7 @@ class EnvConfig:
     human_v_pref_min: float = traced(0.5, low=0.0, low_inclusive=False)
     human_v_pref_max: float = traced(1.5, low=0.0, low_inclusive=False)
     sensor_range: float = traced(5.0, low=0.0, doc="edge-to-edge metres")
-    goal_change_interval: float = traced(5.0, low=0.0, low_inclusive=False, doc="seconds")
+    goal_change_interval: float = traced(5.0, low=0.0, high=MAX_EPISODE_SECONDS, low_inclusive=False, doc="seconds")
     goal_change_prob: float = traced(0.5, low=0.0, high=1.0)
     intrusion_radius: float = traced(0.6, low=0.0, doc="itr_future: centre distance to a true future position")
     orca_time_horizon: float = traced(5.0, low=0.0, low_inclusive=False)
@@ -157,13 +165,7 @@ class EnvConfig:
 
     def __post_init__(self):
         check_fields(self, "env")
-        pairs = [("human_radius_min", "human_radius_max"), ("human_v_pref_min", "human_v_pref_max"),
-                 ("orca_neighbor_dist_min", "orca_neighbor_dist_max")]
-        for lo, hi in pairs:
-            if getattr(self, lo) > getattr(self, hi):
-                raise ConfigError(
-                    f"env.{lo} = {getattr(self, lo)} must be <= env.{hi} = {getattr(self, hi)}"
-                )
+        check_env_relations({n: getattr(self, n) for n in traced_names(EnvConfig)})
         if self.num_humans == 0 and self.predictor != "none":
             raise ConfigError(
                 f"env.predictor = {self.predictor!r} needs humans to predict, but env.num_humans = 0; "
@@ -172,14 +174,6 @@ class EnvConfig:
         if self.predictor == "gst" and self.pred_horizon != 5:
             raise ConfigError(f"env.pred_horizon = {self.pred_horizon} must be 5 with env.predictor = 'gst' "
                               "(the learned model predicts 5 steps)")
-        diagonal = 2.0 * math.sqrt(2.0) * self.arena_size
-        if self.min_start_goal_dist >= diagonal:
-            raise ConfigError(
-                f"env.min_start_goal_dist = {self.min_start_goal_dist} cannot be met in an arena of half-size "
-                f"{self.arena_size}; allowed: < {diagonal:.3f}"
-            )
-        if self.time_limit < self.dt:
-            raise ConfigError(f"env.time_limit = {self.time_limit} must be >= env.dt = {self.dt}")
 
     @property
     def max_neighbors(self) -> int:
@@ -205,6 +199,33 @@ class EnvConfig:
         return cls.from_dict(data.get("env", data))
 
 
+def check_env_relations(values: Mapping[str, Any]) -> None:
+    """The constraints between numeric env fields, on a config's values or on concrete `EnvParams` leaves (arrays:
+    every element)."""
+    for lo, hi in (("human_radius_min", "human_radius_max"), ("human_v_pref_min", "human_v_pref_max"),
+                   ("orca_neighbor_dist_min", "orca_neighbor_dist_max")):
+        hit = first_where(np.asarray(values[lo]) > np.asarray(values[hi]), values[lo], values[hi])
+        if hit:
+            raise ConfigError(f"env.{lo} = {hit[0]!s} must be <= env.{hi} = {hit[1]!s}")
+    diagonal = 2.0 * np.sqrt(2.0) * np.asarray(values["arena_size"])
+    hit = first_where(np.asarray(values["min_start_goal_dist"]) >= diagonal, values["min_start_goal_dist"],
+                      values["arena_size"], diagonal)
+    if hit:
+        raise ConfigError(f"env.min_start_goal_dist = {hit[0]!s} cannot be met in an arena of half-size {hit[1]!s}; "
+                          f"allowed: < {hit[2]:.3f}")
+    hit = first_where(np.asarray(values["time_limit"]) < np.asarray(values["dt"]), values["time_limit"], values["dt"])
+    if hit:
+        raise ConfigError(f"env.time_limit = {hit[0]!s} must be >= env.dt = {hit[1]!s}")
+
+
+def check_env_params(params) -> None:
+    """Concrete `EnvParams` (built by hand, batched or not) against the declarations of `EnvConfig` and
+    `RewardConfig`: ranges and relations, as a config is checked. Raises ConfigError (a ValueError)."""
+    check_traced(params, EnvConfig, "env")
+    check_env_relations({n: concrete(getattr(params, n), f"env.{n}") for n in traced_names(EnvConfig)})
+    check_traced(params.reward, RewardConfig, "reward")
+
+
 def reward_config_from_dict(data: Mapping[str, Any] | None) -> RewardConfig:
     return from_dict(RewardConfig, data, "reward")
 
@@ -214,6 +235,9 @@ def reward_config_from_dict(data: Mapping[str, Any] | None) -> RewardConfig:
 # --------------------------------------------------------------------------------------------------
 
 NETWORK_NAMES = ("hh_attn", "dsrnn", "mlp")
+# Env steps of a run: 10^10 is days of training on any hardware; the update counter is int32.
+MAX_TOTAL_STEPS = 10**10
+MAX_UPDATES = 2**31 - 1
 NETWORK_SIZES = ("paper", "small")
 FRAMES = ("world", "goal")
 
@@ -229,7 +253,7 @@ class PPOConfig:
     # --- static
     num_envs: int = spec(256, low=1, high=65536, doc="parallel environments")
     num_steps: int = spec(15, low=1, high=10000, doc="rollout length per update (= sequence length)")
-    total_steps: int = spec(5_990_400, low=1, doc="environment steps of the whole run")
+    total_steps: int = spec(5_990_400, low=1, high=MAX_TOTAL_STEPS, doc="environment steps of the whole run")
     update_epochs: int = spec(2, low=1, high=1000, doc="epochs over each rollout (reference: 5)")
     num_minibatches: int = spec(8, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
     num_shards: int = spec(2, low=1, high=1024,
@@ -270,6 +294,11 @@ class PPOConfig:
                 f"ppo.total_steps = {self.total_steps} is less than one update "
                 f"(ppo.num_envs x ppo.num_steps = {self.batch_size}); allowed: >= {self.batch_size}"
             )
+        if self.num_updates > MAX_UPDATES:
+            raise ConfigError(
+                f"ppo.total_steps = {self.total_steps} is {self.num_updates:,} updates of ppo.num_envs x "
+                f"ppo.num_steps = {self.batch_size} steps; allowed: <= {MAX_UPDATES * self.batch_size:,} "
+                f"({MAX_UPDATES:,} updates)")
 
     @property
     def batch_size(self) -> int:
@@ -321,7 +350,7 @@ class RunConfig:
     log_every: int = spec(5, low=1, doc="updates per compiled chunk (one progress line / CSV row per chunk)")
     checkpoint_every: int = spec(50, low=1, doc="updates between checkpoints (rounded up to whole chunks)")
     keep_checkpoints: int = spec(3, low=1, doc="checkpoints kept on disk")
-    eval_episodes: int = spec(500, low=0, doc="episodes of the final evaluation (0: skip)")
+    eval_episodes: int = spec(500, low=0, high=MAX_EPISODES, doc="episodes of the final evaluation (0: skip)")
     eval_seed: int = spec(0, low=0, high=2**31 - 1)
     eval_every: int = spec(0, low=0, doc="updates between test evaluations during training (learning curves under "
                            "test conditions, eval_curve.csv); 0: none")

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from tgrf_jax.config import MAX_EPISODES
 from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams
 from tgrf_jax.policies import Policy
 
@@ -158,14 +159,15 @@ def evaluate(
     The environment is evaluated with ground-truth future tracking switched on, so both ITR definitions are
     reported. Episodes run in batches of at most `batch_size` (default `MAX_BATCH`), so memory stays bounded
     however many are asked for; batch i uses `fold_in(key, i)`, so results depend on the batch size (not on
-    anything else). `progress(done, total)` is called after each batch.
+    anything else). `progress(done, total)` is called after each batch. `params` are checked first
+    (`EnvParams.validate`): a zero or negative dt, say, is an error, not an evaluation that never ends.
     """
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes = {n_episodes} must be >= 1")
+    if not 1 <= n_episodes <= MAX_EPISODES:
+        raise ValueError(f"n_episodes = {n_episodes} is out of range; allowed: 1 .. {MAX_EPISODES:,}")
     if batch_size is not None and batch_size < 1:
         raise ValueError(f"batch_size = {batch_size} must be >= 1")
     eval_env = CrowdNavEnv(dataclasses.replace(env.config, track_future_intrusion=True), env.reward_config)
-    params = eval_env.default_params if params is None else params
+    params = (eval_env.default_params if params is None else params).validate()
     batch_size = min(MAX_BATCH if batch_size is None else batch_size, n_episodes)
     chunks = []
     for i, start in enumerate(range(0, n_episodes, batch_size)):

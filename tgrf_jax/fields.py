@@ -15,6 +15,7 @@ import math
 import pathlib
 from typing import Any, Mapping
 
+import numpy as np
 import yaml
 
 
@@ -135,6 +136,47 @@ def check_fields(obj, prefix: str) -> None:
         too_high = hi is not None and (value > hi if meta["high_inclusive"] else value >= hi)
         if too_low or too_high:
             raise ConfigError(f"{name} = {value!r} is out of range; allowed: {describe_allowed(meta)}")
+
+
+def concrete(value, name: str) -> np.ndarray:
+    """A parameter leaf as a host array; a traced one (inside jit / vmap) cannot be checked."""
+    import jax
+
+    if isinstance(value, jax.core.Tracer):
+        raise TypeError(f"{name} is traced: parameters are checked on concrete values, outside jit / vmap")
+    return np.asarray(value)
+
+
+def first_where(bad, *values) -> list | None:
+    """The elements of `values` (broadcast to `bad`'s shape) at the first position where `bad` holds, else None."""
+    bad = np.asarray(bad)
+    if not bad.any():
+        return None
+    index = tuple(np.argwhere(bad)[0])
+    return [np.broadcast_to(np.asarray(v), bad.shape)[index] for v in values]
+
+
+def check_traced(params, config_cls, prefix: str) -> None:
+    """Check the concrete leaves of a parameter pytree (`traced_pytree` of `config_cls`, possibly batched: every
+    element) against the declared ranges of `config_cls`'s traced fields; the error names the field, the element
+    of a batch and the allowed range."""
+    for f in dataclasses.fields(config_cls):
+        if not f.metadata.get("traced"):
+            continue
+        name, meta = f"{prefix}.{f.name}", f.metadata
+        a = concrete(getattr(params, f.name), name)
+        lo, hi = meta.get("low"), meta.get("high")
+        bad = ~np.isfinite(a)
+        if lo is not None:  # bounds in the leaf's dtype: a float32 leaf holds a config's 0.01 as float32(0.01)
+            bad |= a < a.dtype.type(lo) if meta["low_inclusive"] else a <= a.dtype.type(lo)
+        if hi is not None:
+            bad |= a > a.dtype.type(hi) if meta["high_inclusive"] else a >= a.dtype.type(hi)
+        if bad.any():
+            index = tuple(int(i) for i in np.argwhere(bad)[0])
+            value = a[index]
+            where = f"{name}[{', '.join(map(str, index))}]" if index else name
+            what = "is out of range" if np.isfinite(value) else "must be finite"
+            raise ConfigError(f"{where} = {value!s} {what}; allowed: {describe_allowed(meta)}")  # float32's own digits
 
 
 def _unknown_key_error(key: str, prefix: str, valid: list[str]) -> ConfigError:

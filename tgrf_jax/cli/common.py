@@ -46,7 +46,7 @@ def add_pretrained_arg(parser: argparse.ArgumentParser) -> None:
 
 def scenario(source: str | None, overrides: list[str], tool: str, pretrained: str | None = None) -> Scenario:
     """Resolve RUN_DIR|CONFIG (or a pretrained policy) plus `--set` (only env.* and reward.* apply); raises
-    ConfigError."""
+    ConfigError. A tgrf-train config file is checked whole and its env / reward sections are played."""
     bad = [o for o in overrides if o.split(".", 1)[0] not in ("env", "reward")]
     if pretrained is not None:
         from tgrf_jax import pretrained as pretrained_lib
@@ -66,16 +66,75 @@ def scenario(source: str | None, overrides: list[str], tool: str, pretrained: st
             raise ConfigError(f"with a RUN_DIR only env.* and reward.* can be overridden, not {bad}")
         config = TrainConfig.from_dict(apply_overrides(config.to_dict(), overrides))
         return Scenario(config.env, config.reward, pathlib.Path(source), config)
+    if bad:
+        raise ConfigError(f"{tool} plays the env.* and reward.* settings; only those can be overridden, not {bad}")
     data = apply_overrides(load_yaml(source) if source else {}, overrides)
-    unknown = set(data) - {"env", "reward"}
+    sections = [f.name for f in dataclasses.fields(TrainConfig)]
+    unknown = set(data) - set(sections)
     if unknown:
-        raise ConfigError(f"unknown config section(s) {sorted(unknown)}; {tool} reads: env, reward")
+        raise ConfigError(f"unknown config section(s) {sorted(unknown)} in {source!r}; {tool} reads env and reward "
+                          f"(of a tgrf-train config: {', '.join(sections)})")
+    if set(data) - {"env", "reward"}:
+        config = TrainConfig.from_dict(data)  # a tgrf-train config: every section checked, env / reward played
+        return Scenario(config.env, config.reward)
     return Scenario(EnvConfig.from_dict(data.get("env")), reward_config_from_dict(data.get("reward")))
 
 
-def error(tool: str, e: Exception) -> int:
+def error(tool: str, e: Exception, hint: str | None = None) -> int:
     print(f"{tool}: error: {e}", file=sys.stderr)
+    if hint:
+        print(f"{tool}: {hint}", file=sys.stderr)
     return 2
+
+
+def checkpoint_error(tool: str, e: Exception, command: str) -> int:
+    """`error` for a CheckpointError; where a damaged step has intact earlier ones, the hint is `command` followed
+    by the latest of them."""
+    intact = getattr(e, "intact", ())
+    return error(tool, e, f"the latest intact checkpoint: {command} {intact[-1]}" if intact else None)
+
+
+def check_jax() -> None:
+    """JAX settings the tools do not support, refused before anything runs."""
+    import jax
+
+    if jax.config.jax_enable_x64:
+        raise ConfigError("JAX_ENABLE_X64 is on, but tgrf-jax computes in float32 and int32 (its programs and "
+                          "checkpoints); unset JAX_ENABLE_X64")
+
+
+def check_seed(seed: int, flag: str = "--seed") -> None:
+    if not 0 <= seed <= 2**31 - 1:
+        raise ConfigError(f"{flag} = {seed} is out of range; allowed: 0 .. {2**31 - 1}")
+
+
+def check_writable(path, flag: str, *, directory: bool) -> None:
+    """Raise ConfigError unless `path` (a directory with `directory`, else a file) can be created or written:
+    checked before any work, so that no evaluation or training is lost to an unwritable output."""
+    import tempfile
+
+    path = pathlib.Path(path)
+    if directory and path.exists() and not path.is_dir():
+        raise ConfigError(f"{flag} {str(path)!r} exists and is not a directory")
+    if not directory and path.is_dir():
+        raise ConfigError(f"{flag} {str(path)!r} is a directory; give a file name")
+    existing = path if directory and path.is_dir() else path.parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"{flag} {str(path)!r} cannot be created: {str(existing)!r} is a file, not a directory")
+    try:
+        with tempfile.NamedTemporaryFile(dir=existing):
+            pass
+    except OSError as e:
+        raise ConfigError(f"{flag} {str(path)!r} is not writable: no file can be created in {str(existing)!r} "
+                          f"({e.strerror})") from None
+    if not directory and path.is_file():
+        try:
+            with open(path, "a"):
+                pass
+        except OSError as e:
+            raise ConfigError(f"{flag} {str(path)!r} is not writable ({e.strerror})") from None
 
 
 def start(devices: int | None = None, say_cache: bool = False) -> None:
@@ -87,6 +146,17 @@ def start(devices: int | None = None, say_cache: bool = False) -> None:
     cache_dir = compile_cache.enable()
     if cache_dir and say_cache:
         print(f"compilation cache: {cache_dir} (set {compile_cache.ENV_VAR}=off to disable)", flush=True)
+
+
+def episode_progress(label: str):
+    """An `evaluate` progress callback: a line per batch when the episodes take more than one batch."""
+    from tgrf_jax import evaluate
+
+    def progress(done: int, total: int) -> None:
+        if total > evaluate.MAX_BATCH:
+            print(f"  {label}: {done:,}/{total:,} episodes", flush=True)
+
+    return progress
 
 
 def write_json(path: str | None, payload: dict) -> None:

@@ -6,8 +6,11 @@ import argparse
 import sys
 import time
 
-from tgrf_jax.cli.common import add_config_args, add_pretrained_arg, error, scenario, start, write_json
-from tgrf_jax.config import ConfigError
+from tgrf_jax.cli.common import (
+    add_config_args, add_pretrained_arg, check_jax, check_seed, check_writable, checkpoint_error, episode_progress,
+    error, scenario, start, write_json,
+)
+from tgrf_jax.config import MAX_EPISODES, ConfigError
 
 
 def parser() -> argparse.ArgumentParser:
@@ -17,11 +20,12 @@ def parser() -> argparse.ArgumentParser:
         "With a RUN_DIR (from tgrf-train) the trained policy is evaluated on the run's env/reward config "
         "(plus any --policy baselines on the same scenario); otherwise the baselines on a YAML config.",
     )
-    add_config_args(p, "a tgrf-train run directory, or a YAML file with env/reward sections (default: paper "
-                       "scenario)", run_dir=True)
+    add_config_args(p, "a tgrf-train run directory, or a YAML file with env/reward sections, such as a tgrf-train "
+                       "config (default: paper scenario)", run_dir=True)
     p.add_argument("--policy", action="append", choices=["straight", "orca"],
                    help="baseline robot policy (repeatable; default without RUN_DIR: both)")
-    p.add_argument("--episodes", type=int, default=500)
+    p.add_argument("--episodes", type=int, default=500,
+                   help="distinct episodes, played in batches of 1000 (default 500)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to evaluate; default: latest")
     add_pretrained_arg(p)
@@ -32,11 +36,15 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
-        if args.episodes < 1:
-            raise ConfigError(f"--episodes = {args.episodes} must be >= 1")
+        check_jax()
+        if not 1 <= args.episodes <= MAX_EPISODES:
+            raise ConfigError(f"--episodes = {args.episodes} is out of range; allowed: 1 .. {MAX_EPISODES:,}")
+        check_seed(args.seed)
         sc = scenario(args.config, args.overrides, "tgrf-eval", args.pretrained)
         if args.step is not None and sc.run_dir is None:
             raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
+        if args.out:
+            check_writable(args.out, "--out", directory=False)
     except ConfigError as e:
         return error("tgrf-eval", e)
 
@@ -50,17 +58,21 @@ def main(argv: list[str] | None = None) -> int:
         print(f"pretrained {sc.pretrained} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}",
               flush=True)
         t0 = time.perf_counter()
-        payload = evaluate_params(sc.config, sc.params, args.episodes, args.seed, baselines=args.policy or ())
+        payload = evaluate_params(sc.config, sc.params, args.episodes, args.seed, baselines=args.policy or (),
+                                  progress=episode_progress)
         payload.update(pretrained=sc.pretrained)
     elif sc.run_dir is not None:
         try:
             _, state = restore_run(sc.run_dir, args.step)
-        except (CheckpointError, ConfigError) as e:
+        except CheckpointError as e:
+            return checkpoint_error("tgrf-eval", e, f"tgrf-eval {sc.run_dir} --step")
+        except ConfigError as e:
             return error("tgrf-eval", e)
         print(f"{sc.run_dir}: update {int(state.update)} on {jax.devices()[0].platform}; {args.episodes} episodes, "
               f"seed {args.seed}", flush=True)
         t0 = time.perf_counter()
-        payload = evaluate_state(sc.config, state, args.episodes, args.seed, baselines=args.policy or ())
+        payload = evaluate_state(sc.config, state, args.episodes, args.seed, baselines=args.policy or (),
+                                 progress=episode_progress)
         payload.update(run_dir=str(sc.run_dir), update=int(state.update))
     else:
         from tgrf_jax.env import CrowdNavEnv
@@ -70,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
         env = CrowdNavEnv(sc.env, sc.reward)
         print(f"{env} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}", flush=True)
         t0 = time.perf_counter()
-        results = {name: evaluate(env, baseline(name), jax.random.key(args.seed), args.episodes)
+        results = {name: evaluate(env, baseline(name), jax.random.key(args.seed), args.episodes,
+                                  progress=episode_progress(name))
                    for name in args.policy or ["straight", "orca"]}
         payload = {"env": repr(env), "seed": args.seed, "results": {k: v.to_dict() for k, v in results.items()}}
     print(f"  done in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)

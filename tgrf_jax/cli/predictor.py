@@ -20,6 +20,7 @@ import platform
 import subprocess
 import sys
 
+from tgrf_jax.cli.common import check_jax, check_writable
 from tgrf_jax.predictor import data as data_lib
 from tgrf_jax.predictor import train as train_lib
 from tgrf_jax.predictor import weights as weights_lib
@@ -94,8 +95,22 @@ def _load_params(args):
         return weights_lib.from_torch_state_dict({k: arrays[k] for k in arrays.files}), str(path)
 
 
+def _check_outputs(args) -> None:
+    """Every output path, before any collection, training or evaluation."""
+    check_jax()
+    if args.command == "collect":
+        check_writable(args.out, "--out", directory=False)
+    elif args.command == "train":
+        check_writable(args.run_dir, "--run-dir", directory=True)
+        if args.export:
+            check_writable(args.export, "--export", directory=False)
+    elif args.out:
+        check_writable(args.out, "--out", directory=False)
+
+
 def run(argv=None) -> int:
     args = _parser().parse_args(argv)
+    _check_outputs(args)
     if args.command == "collect":
         config = data_lib.CollectConfig(crowd=args.crowd, num_envs=args.envs, steps=args.steps, seed=args.seed)
         out = pathlib.Path(args.out)

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import pathlib
 import sys
 import time
 
-from tgrf_jax.cli.common import add_config_args, add_pretrained_arg, error, scenario, start
-from tgrf_jax.config import ConfigError
+from tgrf_jax.cli.common import (
+    add_config_args, add_pretrained_arg, check_jax, check_seed, check_writable, checkpoint_error, error, scenario,
+    start,
+)
+from tgrf_jax.config import MAX_EPISODES, ConfigError
 
 POLICY_CHOICES = ("straight", "orca")
 
@@ -27,7 +31,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=1, help="episodes per policy (default 1)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--seed", type=int, default=0,
-                   help="episode i is episode i of tgrf-eval --seed S with as many episodes (default 0)")
+                   help="episode i is episode i of tgrf-eval --seed S with as many episodes (default 0; episodes are "
+                   "recorded in tgrf-eval's batches of 1000, in smaller ones where 1000 episodes would exceed "
+                   "200,000 steps, and then only a render of at most one batch replays tgrf-eval's)")
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to render; default latest")
     add_pretrained_arg(p)
     p.add_argument("--fps", type=float, default=8.0, help="GIF/MP4 frames per second (default 8 = 2x real time)")
@@ -43,19 +49,17 @@ def check(args):
     """Everything that can be checked without compiling; returns the scenario. Raises ConfigError."""
     from tgrf_jax.render.export import ffmpeg_path
 
-    if args.episodes < 1:
-        raise ConfigError(f"--episodes = {args.episodes} must be >= 1")
+    check_jax()
+    if not 1 <= args.episodes <= MAX_EPISODES:
+        raise ConfigError(f"--episodes = {args.episodes} is out of range; allowed: 1 .. {MAX_EPISODES:,}")
     if not (args.fps > 0 and math.isfinite(args.fps)):
         raise ConfigError(f"--fps = {args.fps} must be > 0")
     if args.stride < 1:
         raise ConfigError(f"--stride = {args.stride} must be >= 1")
     if not 10 <= args.dpi <= 600:
         raise ConfigError(f"--dpi = {args.dpi} must be between 10 and 600")
-    if args.seed < 0:
-        raise ConfigError(f"--seed = {args.seed} must be >= 0")
-    out = pathlib.Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {str(out)!r} exists and is not a directory")
+    check_seed(args.seed)
+    check_writable(args.out, "--out", directory=True)
     if args.no_frames and args.no_gif and (args.no_mp4 or ffmpeg_path() is None):
         raise ConfigError("nothing to write: --no-frames and --no-gif" + (
             " and --no-mp4" if args.no_mp4 else " (and ffmpeg is not on PATH for an MP4)"))
@@ -88,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.policies import baseline
-    from tgrf_jax.render import eval_key, ffmpeg_path, record_episodes, save_episode
+    from tgrf_jax.render import eval_key, ffmpeg_path, record_episodes
+    from tgrf_jax.render.record import episodes_per_batch
 
     env = CrowdNavEnv(sc.env, sc.reward)
     policies = []
@@ -106,7 +111,9 @@ def main(argv: list[str] | None = None) -> int:
 
         try:
             _, state = restore_run(sc.run_dir, args.step)
-        except (CheckpointError, ValueError) as e:
+        except CheckpointError as e:
+            return checkpoint_error("tgrf-render", e, f"tgrf-render {sc.run_dir} --out {args.out} --step")
+        except ValueError as e:
             return error("tgrf-render", e)
         policies.append((f"learned (update {int(state.update)})", "learned",
                          LearnedPolicy(make_network_for(sc.config), state.params)))
@@ -122,28 +129,43 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{env} on {jax.devices()[0].platform}; {args.episodes} episode(s) per policy, seed {args.seed}", flush=True)
     summary = {"env": repr(env), "seed": args.seed, "source": args.config, "episodes": []}
     n_files = 0
+    per_batch = episodes_per_batch(env.default_params)
+    batches = -(-args.episodes // per_batch)
     for label, slug, policy in policies:
-        t0 = time.perf_counter()
-        print(f"{label}: recording {args.episodes} episode(s) ...", flush=True)
-        episodes = record_episodes(env, policy, eval_key(args.seed), args.episodes, label=label)
-        print(f"  recorded in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)
-        for ep in episodes:
+        for b in range(batches):
+            first, size = b * per_batch, min(per_batch, args.episodes - b * per_batch)
             t0 = time.perf_counter()
-            paths = save_episode(ep, out / slug, frames=not args.no_frames, gif=not args.no_gif, mp4=mp4,
-                                 fps=args.fps, dpi=args.dpi, stride=args.stride)
-            n_files += len(paths["frames"]) + sum(paths[k] is not None for k in ("gif", "mp4"))
-            row = dict(ep.summary(), policy=slug, gif=paths["gif"] and str(paths["gif"]),
-                       mp4=paths["mp4"] and str(paths["mp4"]), frames=len(paths["frames"]),
-                       frame_dir=str(out / slug / f"ep{ep.index:03d}") if paths["frames"] else None)
-            summary["episodes"].append(row)
-            made = ", ".join(x for x in (row["gif"], row["mp4"], paths["frames"] and
-                                         f"{len(paths['frames'])} frames in {row['frame_dir']}") if x)
-            print(f"  episode {ep.index}: {ep.outcome} after {ep.duration:.2f} s ({ep.steps} steps), return "
-                  f"{ep.ret:+.2f} -> {made} [{time.perf_counter() - t0:.1f} s]", flush=True)
+            where = f" ({first}-{first + size - 1} of {args.episodes}, batch {b + 1}/{batches})" if batches > 1 else ""
+            print(f"{label}: recording {size} episode(s){where} ...", flush=True)
+            episodes = [dataclasses.replace(ep, index=first + ep.index)
+                        for ep in record_episodes(env, policy, eval_key(args.seed, b), size, label=label)]
+            print(f"  recorded in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)
+            n_files += _save(episodes, out, slug, args, mp4, summary)
     summary_path = out / "summary.json"
     summary_path.write_text(json.dumps(summary, indent=2))
     print(f"wrote {n_files + 1} files under {out}/ (index: {summary_path})")
     return 0
+
+
+def _save(episodes, out: pathlib.Path, slug: str, args, mp4, summary: dict) -> int:
+    """Draw and write one batch of episodes; returns the number of files written."""
+    from tgrf_jax.render import save_episode
+
+    n_files = 0
+    for ep in episodes:
+        t0 = time.perf_counter()
+        paths = save_episode(ep, out / slug, frames=not args.no_frames, gif=not args.no_gif, mp4=mp4,
+                             fps=args.fps, dpi=args.dpi, stride=args.stride)
+        n_files += len(paths["frames"]) + sum(paths[k] is not None for k in ("gif", "mp4"))
+        row = dict(ep.summary(), policy=slug, gif=paths["gif"] and str(paths["gif"]),
+                   mp4=paths["mp4"] and str(paths["mp4"]), frames=len(paths["frames"]),
+                   frame_dir=str(out / slug / f"ep{ep.index:03d}") if paths["frames"] else None)
+        summary["episodes"].append(row)
+        made = ", ".join(x for x in (row["gif"], row["mp4"], paths["frames"] and
+                                     f"{len(paths['frames'])} frames in {row['frame_dir']}") if x)
+        print(f"  episode {ep.index}: {ep.outcome} after {ep.duration:.2f} s ({ep.steps} steps), return "
+              f"{ep.ret:+.2f} -> {made} [{time.perf_counter() - t0:.1f} s]", flush=True)
+    return n_files
 
 
 if __name__ == "__main__":

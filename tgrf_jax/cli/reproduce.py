@@ -6,6 +6,7 @@ import argparse
 import pathlib
 import sys
 
+from tgrf_jax.cli.common import check_jax, check_writable
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import spec as spec_lib
 
@@ -49,6 +50,11 @@ def main(argv: list[str] | None = None) -> int:
         exp = exp.shrunk(steps=args.steps, seeds=args.seeds, rows=rows)
         out = pathlib.Path(args.out or pathlib.Path("runs") / "reproduce" / exp.name)
         runner.check_out_dir(exp, out)
+        if not (args.print_plan or args.report_only):
+            check_jax()
+            check_writable(out, "--out", directory=True)
+            if args.export_pretrained:
+                check_writable(args.export_pretrained, "--export-pretrained", directory=True)
         if args.print_plan:
             for row in exp.rows:
                 state = runner.row_state(out / row.name)

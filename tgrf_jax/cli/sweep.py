@@ -7,7 +7,7 @@ import os
 import pathlib
 import sys
 
-from tgrf_jax.cli.common import add_config_args, error, start
+from tgrf_jax.cli.common import add_config_args, check_jax, check_writable, checkpoint_error, error, start
 from tgrf_jax.config import ConfigError, griddable_fields
 
 
@@ -23,7 +23,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", default=None, metavar="N|S1,S2,...",
                    help="a count (run.seed, run.seed+1, ...) or a comma-separated list of seeds (default: 1)")
     p.add_argument("--out", help="sweep directory (default: runs/<timestamp>_sweep_<run.name>)")
-    p.add_argument("--resume", metavar="SWEEP_DIR", help="continue the sweep in SWEEP_DIR from its last checkpoint")
+    p.add_argument("--resume", metavar="SWEEP_DIR", help="continue the sweep in SWEEP_DIR from its last checkpoint (a "
+                   "finished sweep: re-create its result files)")
+    p.add_argument("--from-step", type=int, metavar="N",
+                   help="with --resume: continue from checkpoint N instead of the latest (a damaged one, say); "
+                   "the later checkpoints are deleted and their updates trained again")
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="use the first N devices (default: all of them, across all hosts)")
     p.add_argument("--no-run-checkpoints", action="store_true",
@@ -65,8 +69,15 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(griddable_fields()))
         return 0
     from tgrf_jax.sweep.grid import SweepSpec, load_sweep
+    from tgrf_jax.sweep.run import default_sweep_dir
 
     try:
+        check_jax()
+        if args.from_step is not None and not args.resume:
+            raise ConfigError("--from-step N continues a sweep from one of its checkpoints: it needs --resume "
+                              "SWEEP_DIR")
+        if args.from_step is not None and args.from_step < 0:
+            raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
         if args.resume:
             if args.config or args.grid or args.overrides or args.seeds or args.out:
                 raise ConfigError("--resume SWEEP_DIR takes no config file, --grid, --seeds, --set or --out (the "
@@ -77,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
         distributed = bool(args.coordinator or args.distributed)
         if distributed and args.out is None and not args.resume:
             raise ConfigError("a multi-host sweep needs --out (the same shared directory on every host)")
+        sweep_dir = pathlib.Path(args.resume or args.out or default_sweep_dir(spec.base_config))
+        if not args.print_plan:
+            check_writable(sweep_dir, "--resume" if args.resume else "--out", directory=True)
     except ConfigError as e:
         return error("tgrf-sweep", e)
     if args.print_plan:
@@ -91,15 +105,16 @@ def main(argv: list[str] | None = None) -> int:
             init_distributed(args.coordinator, args.num_processes, args.process_id)
         except ConfigError as e:
             return error("tgrf-sweep", e)
-    from tgrf_jax.sweep.run import default_sweep_dir, run_sweep
+    from tgrf_jax.sweep.run import run_sweep
     from tgrf_jax.train.checkpoint import CheckpointError
 
-    sweep_dir = pathlib.Path(args.resume or args.out or default_sweep_dir(spec.base_config))
     try:
-        run_sweep(None if args.resume else spec, sweep_dir, resume=bool(args.resume),
+        run_sweep(None if args.resume else spec, sweep_dir, resume=bool(args.resume), from_step=args.from_step,
                   log=lambda m: print(m, flush=True), num_devices=args.devices,
                   export_checkpoints=not args.no_run_checkpoints)
-    except (CheckpointError, ConfigError) as e:
+    except CheckpointError as e:
+        return checkpoint_error("tgrf-sweep", e, f"tgrf-sweep --resume {sweep_dir} --from-step")
+    except ConfigError as e:
         return error("tgrf-sweep", e)
     except KeyboardInterrupt:
         print(f"tgrf-sweep: interrupted; resume with: tgrf-sweep --resume {sweep_dir}", file=sys.stderr)

@@ -6,7 +6,7 @@ import argparse
 import pathlib
 import sys
 
-from tgrf_jax.cli.common import add_config_args, error, start, train_config
+from tgrf_jax.cli.common import add_config_args, check_jax, check_writable, checkpoint_error, error, start, train_config
 from tgrf_jax.config import ConfigError
 
 
@@ -18,7 +18,11 @@ def parser() -> argparse.ArgumentParser:
     )
     add_config_args(p, "YAML with env/reward/ppo/network/run sections (all optional)")
     p.add_argument("--out-dir", help="run directory (default: runs/<timestamp>_<run.name>)")
-    p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
+    p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint (a "
+                   "finished run: re-create missing result files)")
+    p.add_argument("--from-step", type=int, metavar="N",
+                   help="with --resume: continue from checkpoint N instead of the latest (a damaged one, say); "
+                   "the later checkpoints are deleted and their updates trained again")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     return p
 
@@ -29,6 +33,11 @@ def main(argv: list[str] | None = None) -> int:
     from tgrf_jax.train.loop import default_run_dir, load_run_config
 
     try:
+        check_jax()
+        if args.from_step is not None and not args.resume:
+            raise ConfigError("--from-step N continues a run from one of its checkpoints: it needs --resume RUN_DIR")
+        if args.from_step is not None and args.from_step < 0:
+            raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
         if args.resume:
             if args.config or args.overrides or args.out_dir:
                 raise ConfigError("--resume RUN_DIR takes no config file, --set or --out-dir (the run's own "
@@ -36,6 +45,9 @@ def main(argv: list[str] | None = None) -> int:
             config = load_run_config(args.resume)
         else:
             config = train_config(args.config, args.overrides)
+        run_dir = pathlib.Path(args.resume or args.out_dir or default_run_dir(config))
+        if not args.print_config:
+            check_writable(run_dir, "--resume" if args.resume else "--out-dir", directory=True)
     except ConfigError as e:
         return error("tgrf-train", e)
     if args.print_config:
@@ -45,10 +57,12 @@ def main(argv: list[str] | None = None) -> int:
     start(devices=config.ppo.num_shards, say_cache=True)  # one CPU device per env shard
     from tgrf_jax.train.loop import train_run
 
-    run_dir = pathlib.Path(args.resume or args.out_dir or default_run_dir(config))
     try:
-        train_run(config, run_dir, resume=bool(args.resume), log=lambda m: print(m, flush=True))
-    except (CheckpointError, ConfigError) as e:
+        train_run(config, run_dir, resume=bool(args.resume), from_step=args.from_step,
+                  log=lambda m: print(m, flush=True))
+    except CheckpointError as e:
+        return checkpoint_error("tgrf-train", e, f"tgrf-train --resume {run_dir} --from-step")
+    except ConfigError as e:
         return error("tgrf-train", e)
     except KeyboardInterrupt:
         print(f"tgrf-train: interrupted; resume with: tgrf-train --resume {run_dir}", file=sys.stderr)

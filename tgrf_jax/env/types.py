@@ -7,7 +7,7 @@ from typing import Any
 import jax.numpy as jnp
 from flax import struct
 
-from tgrf_jax.config import EnvConfig
+from tgrf_jax.config import EnvConfig, check_env_params
 from tgrf_jax.fields import traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
@@ -28,6 +28,13 @@ class _EnvParamsMethods:
     @classmethod
     def from_config(cls, config: EnvConfig, reward: RewardParams) -> "EnvParams":
         return cls(**traced_values(config), reward=reward)
+
+    def validate(self) -> "EnvParams":
+        """Check the concrete values (on the host; batched params element by element) against the ranges and
+        relations declared in `EnvConfig` and `RewardConfig`, as a config is checked. Raises ConfigError (a
+        ValueError) naming the field and what is allowed; returns the params."""
+        check_env_params(self)
+        return self
 
 
 EnvParams = traced_pytree(

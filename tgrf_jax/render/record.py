@@ -126,12 +126,29 @@ def _record_jit():
     return jax.jit(_record, static_argnums=(0, 1, 3, 5))
 
 
-def eval_key(seed: int):
+# Episode steps recorded at once (every state of every episode of a batch stays in memory until it is drawn: about
+# 1.5 kB per step with 20 humans and predictions, so some 300 MB).
+RECORD_STEPS = 200_000
+
+
+def eval_key(seed: int, batch: int = 0):
     """The key with which `tgrf_jax.evaluate.evaluate(env, policy, jax.random.key(seed), n)` (and so `tgrf-eval
-    --seed`) plays its episodes (its first batch): `record_episodes(env, policy, eval_key(seed), n)` replays them."""
+    --seed`) plays its batch `batch` of episodes: `record_episodes(env, policy, eval_key(seed), n)` replays them."""
     import jax
 
-    return jax.random.fold_in(jax.random.key(seed), 0)
+    return jax.random.fold_in(jax.random.key(seed), batch)
+
+
+def episodes_per_batch(params) -> int:
+    """Episodes recorded at once: `evaluate`'s batch (so a render replays the evaluation's episodes), fewer where
+    episodes are so long that a batch would exceed `RECORD_STEPS` steps."""
+    from tgrf_jax.evaluate import MAX_BATCH
+
+    return max(1, min(MAX_BATCH, RECORD_STEPS // episode_steps(params)))
+
+
+def episode_steps(params) -> int:
+    return int(round(float(params.time_limit) / float(params.dt)))
 
 
 def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label: str | None = None) -> list[Episode]:
@@ -145,8 +162,8 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
 
     if int(n_episodes) < 1:
         raise ValueError(f"n_episodes = {n_episodes} must be >= 1")
-    params = env.default_params if params is None else params
-    n_steps = int(round(float(params.time_limit) / float(params.dt)))
+    params = (env.default_params if params is None else params).validate()
+    n_steps = episode_steps(params)
     first, outs = jax.device_get(_record_jit()(env, policy, key, int(n_episodes), params, n_steps))
     label = label or getattr(policy, "name", None) or type(policy).__name__
     k = env.config.pred_horizon if env.config.uses_predictions else 0

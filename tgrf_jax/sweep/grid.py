@@ -47,6 +47,9 @@ def parse_grid(items: list[str], base: dict | None = None) -> tuple[GridAxis, ..
             raise ConfigError(f"--grid {item!r} must look like section.field=v1,v2,... (e.g. reward.h_disc=0.5,1.0)")
         name, raw = item.split("=", 1)
         name = name.strip()
+        if name == "run.seed":
+            raise ConfigError(f"--grid {item!r}: seeds are not a grid axis; give them with --seeds N (run.seed, "
+                              "run.seed + 1, ...) or --seeds S1,S2,...")
         if name not in griddable:
             listing = ", ".join(griddable)
             if name in known:

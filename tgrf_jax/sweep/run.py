@@ -30,7 +30,7 @@ from tgrf_jax.config import ConfigError, TrainConfig
 from tgrf_jax.sweep.grid import SWEEP_FILE, SweepSpec, _fmt_value, load_sweep
 from tgrf_jax.sweep.program import SweepBatch, barrier
 from tgrf_jax.sweep.report import RUNS_DIR, format_summary_markdown, plot_sweep, write_results
-from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer, tree_digest
 from tgrf_jax.train.curves import CURVE_FIELDS, EVAL_CURVE_CSV, PeriodicEvaluation
 from tgrf_jax.train.lock import exclusive
 from tgrf_jax.train.progress import CSV_FIELDS, CsvWriter, LogFile, ProgressPrinter, run_rows
@@ -55,6 +55,23 @@ class SweepResult:
     compiled_chunks: int = 0
 
 
+def export_checkpoint(directory, step: int, state, keep: int) -> None:
+    """A run's final checkpoint under runs/<name>/checkpoints: saved where missing, damaged or different from
+    `state` (a resumed sweep exports again only what it must)."""
+    ckpt = Checkpointer(directory, keep=keep)
+    try:
+        if step in ckpt.all_steps():
+            try:
+                if tree_digest(ckpt.restore(state, step)) == tree_digest(state):
+                    return
+            except CheckpointError:
+                pass
+            ckpt.delete(step)
+        ckpt.save(step, state)
+    finally:
+        ckpt.close()
+
+
 def default_sweep_dir(config: TrainConfig, root="runs") -> pathlib.Path:
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     return pathlib.Path(root) / f"{stamp}_sweep_{config.run.name}"
@@ -65,13 +82,16 @@ def run_sweep(
     sweep_dir,
     *,
     resume: bool = False,
+    from_step: int | None = None,
     log: Callable[[str], None] = print,
     stop_after_updates: int | None = None,
     devices=None,
     num_devices: int | None = None,
     export_checkpoints: bool = True,
 ) -> SweepResult:
-    """Train every run of `spec` in `sweep_dir` as one batch (or resume the sweep there: `spec=None, resume=True`).
+    """Train every run of `spec` in `sweep_dir` as one batch (or resume the sweep there: `spec=None, resume=True`,
+    from its latest checkpoint or from checkpoint `from_step`). Resuming a finished sweep trains nothing and
+    re-creates its result files (evals.csv, summaries, plots, the runs' final checkpoints where missing).
 
     `devices` (default: all, `jax.devices()`; or the first `num_devices` of them) carry the run axis.
     `stop_after_updates` ends early, as an interruption would (for tests). Process 0 holds the sweep directory's
@@ -79,17 +99,20 @@ def run_sweep(
     import jax
 
     sweep_dir = pathlib.Path(sweep_dir)
+    if from_step is not None and not resume:
+        raise ConfigError("from_step needs resume (a sweep restarts from one of its own checkpoints)")
     if resume:
         load_sweep(sweep_dir)  # a clear error for a directory that holds no sweep
     elif (sweep_dir / SWEEP_FILE).exists():
         raise ConfigError(f"sweep directory {str(sweep_dir)!r} already holds a sweep; use --resume or another --out")
+    args = (spec, sweep_dir, resume, from_step, log, stop_after_updates, devices, num_devices, export_checkpoints)
     if jax.process_index() != 0:
-        return _run_sweep(spec, sweep_dir, resume, log, stop_after_updates, devices, num_devices, export_checkpoints)
+        return _run_sweep(*args)
     with exclusive(sweep_dir):
-        return _run_sweep(spec, sweep_dir, resume, log, stop_after_updates, devices, num_devices, export_checkpoints)
+        return _run_sweep(*args)
 
 
-def _run_sweep(spec, sweep_dir: pathlib.Path, resume, log, stop_after_updates, devices, num_devices,
+def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after_updates, devices, num_devices,
                export_checkpoints) -> SweepResult:
     import jax
 
@@ -149,9 +172,9 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, log, stop_after_updates, d
         state_fns.append(PeriodicEvaluation(program, run_cfg.eval_every, run_cfg.curve_episodes, run_cfg.eval_seed,
                                             curve_writers, say))
     try:
-        out = train_runs(program, ckpt, run_cfg, resume=resume, progress_fns=writers, state_fns=state_fns,
-                         cut_every=[run_cfg.eval_every] if state_fns else [], run_dirs=run_dirs if main else (),
-                         say=say, stop_after_updates=stop_after_updates)
+        out = train_runs(program, ckpt, run_cfg, resume=resume, from_step=from_step, progress_fns=writers,
+                         state_fns=state_fns, cut_every=[run_cfg.eval_every] if state_fns else [],
+                         run_dirs=run_dirs, write_evals=main, say=say, stop_after_updates=stop_after_updates)
     finally:
         for w in writers + curve_writers:
             getattr(w, "close", lambda: None)()
@@ -163,9 +186,8 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, log, stop_after_updates, d
     if out.updates == program.num_updates:
         if export_checkpoints:  # so that tgrf-eval / tgrf-render work on runs/<name>
             for i, d in enumerate(run_dirs):
-                run_ckpt = Checkpointer(d / CHECKPOINT_DIR, keep=run_cfg.keep_checkpoints)
-                run_ckpt.save(out.updates, jax.tree_util.tree_map(lambda x: x[i], host_state))
-                run_ckpt.close()
+                export_checkpoint(d / CHECKPOINT_DIR, out.updates, jax.tree_util.tree_map(lambda x: x[i], host_state),
+                                  run_cfg.keep_checkpoints)
         if main:
             rows = write_results(sweep_dir, spec, out.evals)
             say(format_summary_markdown(spec, rows))

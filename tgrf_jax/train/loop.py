@@ -90,7 +90,7 @@ class SoloProgram:
         return self.train.init(self.key, self.train.default_hparams)
 
     def restore(self, checkpointer: Checkpointer, step: int):
-        template = jax.eval_shape(self.train.init, self.key, self.train.default_hparams)
+        template = jax.eval_shape(self.train.trainer.init, self.key, self.train.default_hparams)
         state = self.train.place(checkpointer.restore(template, step))
         return state, int(state.update)
 
@@ -134,21 +134,26 @@ def train_run(
     run_dir,
     *,
     resume: bool = False,
+    from_step: int | None = None,
     log: Callable[[str], None] = print,
     stop_after_updates: int | None = None,
 ) -> RunResult:
-    """Train `config` in `run_dir` (or resume the run there). `stop_after_updates` ends early (for tests).
+    """Train `config` in `run_dir` (or resume the run there: from its latest checkpoint, or from checkpoint
+    `from_step`, whose later checkpoints are deleted and trained again). Resuming a finished run trains nothing and
+    re-creates only missing result files. `stop_after_updates` ends early (for tests).
     The process holds the run directory's lock while it writes there (`tgrf_jax.train.lock`)."""
     run_dir = pathlib.Path(run_dir)
+    if from_step is not None and not resume:
+        raise ConfigError("from_step needs resume (a run restarts from one of its own checkpoints)")
     if resume:
         load_run_config(run_dir)  # a clear error for a directory that holds no run
     elif (run_dir / CONFIG_FILE).exists():
         raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; use --resume or another --out-dir")
     with exclusive(run_dir):
-        return _train_run(config, run_dir, resume, log, stop_after_updates)
+        return _train_run(config, run_dir, resume, from_step, log, stop_after_updates)
 
 
-def _train_run(config, run_dir: pathlib.Path, resume: bool, log, stop_after_updates) -> RunResult:
+def _train_run(config, run_dir: pathlib.Path, resume: bool, from_step, log, stop_after_updates) -> RunResult:
     ckpt_dir = run_dir / CHECKPOINT_DIR
     if resume:
         config = load_run_config(run_dir)
@@ -174,9 +179,9 @@ def _train_run(config, run_dir: pathlib.Path, resume: bool, log, stop_after_upda
     if resume:
         say(f"resuming {run_dir}")
     try:
-        out = train_runs(program, ckpt, config.run, resume=resume, progress_fns=writers, state_fns=state_fns,
-                         cut_every=[config.run.eval_every] if state_fns else [], run_dirs=[run_dir], say=say,
-                         stop_after_updates=stop_after_updates)
+        out = train_runs(program, ckpt, config.run, resume=resume, from_step=from_step, progress_fns=writers,
+                         state_fns=state_fns, cut_every=[config.run.eval_every] if state_fns else [],
+                         run_dirs=[run_dir], say=say, stop_after_updates=stop_after_updates)
     finally:
         for w in writers + curve_writers:
             getattr(w, "close", lambda: None)()
@@ -215,7 +220,7 @@ def restore_run(run_dir, step: int | None = None) -> tuple[TrainConfig, TrainSta
     config = load_run_config(run_dir)
     t = make_train(config)
     ckpt = Checkpointer(run_dir / CHECKPOINT_DIR, keep=config.run.keep_checkpoints, create=False)
-    template = jax.eval_shape(t.init, jax.random.PRNGKey(0), t.default_hparams)
+    template = jax.eval_shape(t.trainer.init, jax.random.PRNGKey(0), t.default_hparams)
     try:
         state = ckpt.restore(template, step)
     finally:
@@ -223,13 +228,16 @@ def restore_run(run_dir, step: int | None = None) -> tuple[TrainConfig, TrainSta
     return config, state
 
 
-def evaluate_state(config: TrainConfig, state: TrainState, episodes: int, seed: int, baselines=(), net=None) -> dict:
+def evaluate_state(config: TrainConfig, state: TrainState, episodes: int, seed: int, baselines=(), net=None,
+                   progress=None) -> dict:
     """SPEC A.4 metrics of the trained (deterministic) policy and optional baselines on the run's env/reward.
-    `net` (default: built from the config) keys the compiled evaluation: pass the same one to reuse it."""
-    return evaluate_params(config, state.params, episodes, seed, baselines, net)
+    `net` (default: built from the config) keys the compiled evaluation: pass the same one to reuse it.
+    `progress(name)` (optional) gives each policy's `evaluate` progress callback."""
+    return evaluate_params(config, state.params, episodes, seed, baselines, net, progress)
 
 
-def evaluate_params(config: TrainConfig, params, episodes: int, seed: int, baselines=(), net=None) -> dict:
+def evaluate_params(config: TrainConfig, params, episodes: int, seed: int, baselines=(), net=None,
+                    progress=None) -> dict:
     """`evaluate_state` for bare network parameters (e.g. a pretrained policy)."""
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.evaluate import evaluate
@@ -241,9 +249,10 @@ def evaluate_params(config: TrainConfig, params, episodes: int, seed: int, basel
     key = jax.random.key(seed)
     params = jax.device_get(params)  # off the shards' devices: evaluation runs on the default device
     net = make_network_for(config) if net is None else net
-    results = {"learned": evaluate(env, LearnedPolicy(net, params), key, episodes)}
+    track = (lambda name: None) if progress is None else progress
+    results = {"learned": evaluate(env, LearnedPolicy(net, params), key, episodes, progress=track("learned"))}
     for name in baselines:
-        results[name] = evaluate(env, baseline(name), key, episodes)
+        results[name] = evaluate(env, baseline(name), key, episodes, progress=track(name))
     return {"env": repr(env), "episodes": episodes, "seed": seed,
             "results": {k: v.to_dict() for k, v in results.items()}}
 

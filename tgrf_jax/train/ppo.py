@@ -30,7 +30,7 @@ import optax
 from flax import struct
 
 from tgrf_jax.config import PPOConfig, TrainConfig
-from tgrf_jax.fields import traced_pytree, traced_values
+from tgrf_jax.fields import check_traced, traced_pytree, traced_values
 from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams, EnvState, Obs
 from tgrf_jax.nets import ActorCritic, make_network
 from tgrf_jax.train import shards
@@ -492,6 +492,13 @@ def reduce_metrics(per_update: dict) -> dict:
     return {k: (jnp.sum(v, axis=0) if k in SUMMED_METRICS else jnp.mean(v, axis=0)) for k, v in per_update.items()}
 
 
+def check_hparams(hparams: HParams) -> None:
+    """Concrete `HParams` (batched or not) against the declarations of `PPOConfig`, `EnvConfig` and
+    `RewardConfig`; raises ConfigError naming the field and the allowed range."""
+    check_traced(hparams, PPOConfig, "ppo")
+    hparams.env.validate()
+
+
 def make_network_for(config: TrainConfig) -> ActorCritic:
     env_cfg = config.env
     n = config.network
@@ -503,7 +510,7 @@ class Train(NamedTuple):
     """What `make_train` returns: a pure `train(key, hparams)` plus the chunking seams."""
 
     train: callable  # (key, hparams) -> (TrainState, per-update metrics)
-    init: callable  # jitted (key, hparams) -> TrainState, placed for run_chunk
+    init: callable  # (key, hparams) -> TrainState, placed for run_chunk (jitted; concrete hparams are checked)
     run_chunk: callable  # jitted (TrainState, n_updates static) -> (TrainState, chunk metrics)
     trainer: Trainer
     default_hparams: HParams
@@ -521,9 +528,16 @@ def make_train(config: TrainConfig, devices="auto") -> Train:
     env = CrowdNavEnv(config.env, config.reward)
     mesh = shards.shard_mesh(config.ppo.num_shards, devices)
     trainer = Trainer(config, env, make_network_for(config), mesh)
+    jit_init = jax.jit(trainer.init, out_shardings=trainer.state_shardings)
+
+    def init(key, hparams: HParams | None = None) -> TrainState:
+        if hparams is not None:
+            check_hparams(hparams)  # hand-built hyper-parameters: checked as a config would be
+        return jit_init(key, hparams)
+
     return Train(
         train=trainer.train,
-        init=jax.jit(trainer.init, out_shardings=trainer.state_shardings),
+        init=init,
         run_chunk=jax.jit(trainer.run_updates, static_argnums=1),
         trainer=trainer,
         default_hparams=trainer.default_hparams,

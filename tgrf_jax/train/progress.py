@@ -124,11 +124,13 @@ class CsvWriter:
         if not self.path.is_file():
             return 0.0
         with open(self.path, newline="") as f:
-            rows = [r for r in csv.DictReader(f) if int(float(r["update"])) <= update]
-        with open(self.path, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=self.fields)
-            w.writeheader()
-            w.writerows(rows)
+            every = list(csv.DictReader(f))
+        rows = [r for r in every if int(float(r["update"])) <= update]
+        if len(rows) < len(every):  # (a finished run resumed keeps its file as it is)
+            with open(self.path, "w", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=self.fields)
+                w.writeheader()
+                w.writerows(rows)
         return max((float(r.get("wall_s") or 0.0) for r in rows), default=0.0)
 
     def close(self) -> None:

@@ -17,7 +17,7 @@ import dataclasses
 import json
 import pathlib
 import time
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, Iterator, Protocol, Sequence
 
 from tgrf_jax.config import RunConfig
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
@@ -48,15 +48,14 @@ class Program(Protocol):
     def describe(self, state) -> str: ...
 
 
-def chunk_plan(start: int, total: int, log_every: int, *cut_every: int) -> list[int]:
+def chunk_plan(start: int, total: int, log_every: int, *cut_every: int) -> Iterator[int]:
     """Chunk lengths from update `start` to `total`: at most log_every, never crossing a multiple of log_every or
-    of any `cut_every` period (checkpoints, periodic evaluations)."""
-    plan, u = [], start
+    of any `cut_every` period (checkpoints, periodic evaluations). Lazy: a run may have billions of updates."""
+    u = start
     while u < total:
         n = min([total - u] + [p - u % p for p in (log_every, *cut_every)])
-        plan.append(n)
+        yield n
         u += n
-    return plan
 
 
 @dataclasses.dataclass
@@ -75,21 +74,30 @@ def train_runs(
     run: RunConfig,
     *,
     resume: bool = False,
+    from_step: int | None = None,
     progress_fns: Sequence[Callable[[int, ChunkMetrics], None]] = (),
     state_fns: Sequence[Callable[[int, Any], None]] = (),
     cut_every: Sequence[int] = (),
     run_dirs: Sequence[pathlib.Path] = (),
+    write_evals: bool = True,
     say: Callable[[str], None] = print,
     stop_after_updates: int | None = None,
 ) -> RunnerResult:
-    """Train (or, with `resume`, continue from the latest checkpoint) every run of `program` to its end.
+    """Train (or, with `resume`, continue from the latest checkpoint, or from checkpoint `from_step`) every run of
+    `program` to its end.
 
     Chunks end at multiples of `run.log_every`, `run.checkpoint_every` and every period in `cut_every` (where a
-    `state_fn` wants to see the state). `run_dirs` (one per run) receive the final evaluation as eval.json.
+    `state_fn` wants to see the state). `run_dirs` (one per run) receive the final evaluation as eval.json (where
+    `write_evals`: on a multi-host sweep, process 0). Resuming a run that is trained to its end trains and evaluates
+    nothing: the eval.json files already written are its evaluation, and only missing ones are made again.
     `stop_after_updates` ends early, as an interruption would (for tests)."""
     total, batch, G = program.num_updates, program.batch_size, program.num_runs
     start_time = time.perf_counter()
-    step = checkpointer.latest_step() if resume else None
+    steps = checkpointer.all_steps() if resume else []
+    if from_step is not None and from_step not in steps:
+        raise CheckpointError(f"--from-step {from_step}: {str(checkpointer.directory)!r} holds no checkpoint of "
+                              f"update {from_step}; it holds: {', '.join(map(str, steps)) or 'none'}")
+    step = from_step if from_step is not None else (steps[-1] if steps else None)
     if resume and step is None:
         say("no checkpoint yet (the run stopped before its first one): starting from the beginning")
         for fn in (*progress_fns, *state_fns):
@@ -97,12 +105,15 @@ def train_runs(
     if step is not None:
         state, start = program.restore(checkpointer, step)
         if start != step:
-            raise CheckpointError(f"checkpoint {str(checkpointer.directory / str(step))!r} holds update {start}, "
-                                  f"not {step}")
+            raise CheckpointError(f"checkpoint {str(checkpointer.path(step))!r} holds update {start}, not {step}")
+        if checkpointer.delete_after(start):  # --from-step: the later updates are trained again
+            for run_dir in run_dirs if write_evals else ():
+                (pathlib.Path(run_dir) / EVAL_FILE).unlink(missing_ok=True)
         # the one place where files written after the checkpoint are cut back to it
         wall_offset = max([fn.truncate(start) for fn in (*progress_fns, *state_fns) if hasattr(fn, "truncate")],
                           default=0.0)
-        say(f"resumed at update {start}/{total} ({start * batch:,} env steps{' per run' if G > 1 else ''})")
+        say(f"resumed at update {start}/{total} ({start * batch:,} env steps{' per run' if G > 1 else ''})"
+            + (": trained to the end already" if start == total else ""))
     else:
         state, start, wall_offset = program.init(), 0, 0.0
         checkpointer.save(0, program.host_state(state))
@@ -136,12 +147,31 @@ def train_runs(
 
     result = RunnerResult(state, start, update, train_seconds, compiled, None)
     if update == total and run.eval_episodes > 0:
-        say(f"evaluating the final polic{'ies' if G > 1 else 'y'} on {run.eval_episodes} episodes"
-            f"{' each' if G > 1 else ''} ...")
-        c0 = time.perf_counter()
-        result.evals = program.evaluate(state, run.eval_episodes, run.eval_seed)
-        say(f"  done in {time.perf_counter() - c0:.1f} s (compilation included)")
-        for run_dir, payload in zip(run_dirs, result.evals):
-            payload.update(run_dir=str(run_dir), updates=update, env_steps=update * batch)
-            (pathlib.Path(run_dir) / EVAL_FILE).write_text(json.dumps(payload, indent=2))
+        result.evals = written_evals(run_dirs, total, run) if start == total else None
+        if result.evals is None:
+            say(f"evaluating the final polic{'ies' if G > 1 else 'y'} on {run.eval_episodes} episodes"
+                f"{' each' if G > 1 else ''} ...")
+            c0 = time.perf_counter()
+            result.evals = program.evaluate(state, run.eval_episodes, run.eval_seed)
+            say(f"  done in {time.perf_counter() - c0:.1f} s (compilation included)")
+            for run_dir, payload in zip(run_dirs, result.evals):
+                payload.update(run_dir=str(run_dir), updates=update, env_steps=update * batch)
+                if write_evals:
+                    (pathlib.Path(run_dir) / EVAL_FILE).write_text(json.dumps(payload, indent=2))
     return result
+
+
+def written_evals(run_dirs: Sequence[pathlib.Path], total: int, run: RunConfig) -> list[dict] | None:
+    """The final evaluations already written to `run_dirs` (eval.json of update `total` with `run`'s episodes and
+    seed in every one), or None where any is missing or stale."""
+    payloads = []
+    for run_dir in run_dirs:
+        try:
+            payload = json.loads((pathlib.Path(run_dir) / EVAL_FILE).read_text())
+        except (OSError, ValueError):
+            return None
+        if (payload.get("updates"), payload.get("episodes"), payload.get("seed")) != (
+                total, run.eval_episodes, run.eval_seed):
+            return None
+        payloads.append(payload)
+    return payloads

@@ -1,0 +1,330 @@
+"""A catalogue of bad inputs to the command-line tools: config keys, types and ranges, config files, grids, seeds,
+output paths, run directories and checkpoints. Each must end the tool with exit status 2 and one error naming the
+field or path (and what is allowed), before anything is compiled: no output written, no traceback.
+
+The tools run in this process (`main(argv)`); a jax.monitoring listener counts compilations. Cases that read a
+checkpoint trace the state's shapes (`jax.eval_shape`), so only they may trace; none may compile.
+"""
+
+import pathlib
+import shutil
+
+import jax
+import pytest
+
+from helpers import CompileCounter
+
+from tgrf_jax.cli import eval_main, predictor_main, render_main, reproduce_main, sweep_main, train_main
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = str(ROOT / "configs" / "tiny.yaml")
+def _exit_status(main):
+    """tgrf-predictor's main exits instead of returning its status."""
+    def run(argv):
+        try:
+            return main(argv)
+        except SystemExit as e:
+            return e.code
+    return run
+
+
+MAINS = {"tgrf-train": train_main, "tgrf-eval": eval_main, "tgrf-sweep": sweep_main, "tgrf-render": render_main,
+         "tgrf-reproduce": reproduce_main, "tgrf-predictor": _exit_status(predictor_main)}
+UNWRITABLE = "/sys/tgrf-out"  # the kernel refuses new files under /sys, even to root
+FRESH = "{tmp}/fresh"  # an output path that must still not exist after the error
+
+
+def train(*sets, out=FRESH):
+    return ["tgrf-train", [TINY, *sum((["--set", s] for s in sets), []), "--out-dir", out]]
+
+
+def sweep(*args, out=FRESH):
+    return ["tgrf-sweep", [*args, "--out", out]]
+
+
+def evaluate(*args):
+    return ["tgrf-eval", [*args, "--episodes", "2", "--out", FRESH + "/eval.json"]]
+
+
+def render(*args, out=FRESH):
+    return ["tgrf-render", [*args, "--out", out]]
+
+
+CASES = {
+    # ---- config keys
+    "unknown key": (*train("ppo.lrr=1e-3"), "unknown config key 'ppo.lrr' (did you mean 'lr'?)"),
+    "unknown section": (*train("envv.dt=0.1"), "unknown config key 'envv' (did you mean 'env'?)"),
+    "unknown env key": (*train("env.num_human=3"), "unknown config key 'env.num_human' (did you mean 'num_humans'?)"),
+    "unknown reward key": (*train("reward.hdisc=1"), "unknown config key 'reward.hdisc' (did you mean 'h_disc'?)"),
+    "unknown network key": (*train("network.sise=paper"), "unknown config key 'network.sise'"),
+    "unknown run key": (*train("run.sed=3"), "unknown config key 'run.sed'"),
+    "section given a value": (*train("ppo=3"), "ppo must be a mapping of PPOConfig fields"),
+    "override without a value": (*train("ppo.lr"), "override 'ppo.lr' must look like section.field=value"),
+    "eval: key of another tool": (*evaluate(TINY, "--set", "ppo.lr=0.1"),
+                                  "only those can be overridden, not ['ppo.lr=0.1']"),
+    "eval: run dir override": (*evaluate("{run}", "--set", "run.seed=3"),
+                               "with a RUN_DIR only env.* and reward.* can be overridden"),
+    "eval: unknown section": (*evaluate("{tmp}/foo.yaml"), "unknown config section(s) ['foo']"),
+    # ---- types
+    "float for an integer": (*train("env.num_humans=2.5"), "env.num_humans = 2.5 must be an integer"),
+    "word for a number": (*train("env.dt=fast"), "env.dt = 'fast' must be a number"),
+    "word for a boolean": (*train("env.robot_visible=maybe"), "env.robot_visible = 'maybe' must be a boolean"),
+    "boolean for an integer": (*train("ppo.num_envs=true"), "ppo.num_envs = True must be an integer"),
+    "list for a string": (*train("run.name=[1,2]"), "run.name = [1, 2] must be a string"),
+    "word for a reward": (*train("reward.h_disc=abc"), "reward.h_disc = 'abc' must be a number"),
+    "number for a choice": (*train("env.human_policy=3"), "env.human_policy = 3 must be a string"),
+    "choice misspelt": (*train("env.human_policy=sfm"),
+                        "env.human_policy = 'sfm' is not allowed; allowed: one of 'orca', 'social_force'"),
+    # ---- ranges
+    "dt tiny": (*train("env.dt=1e-30"), "env.dt = 1e-30 is out of range; allowed: >= 0.01 and <= 1.0"),
+    "dt zero": (*train("env.dt=0"), "env.dt = 0.0 is out of range; allowed: >= 0.01 and <= 1.0"),
+    "dt negative": (*train("env.dt=-0.1"), "env.dt = -0.1 is out of range"),
+    "dt large": (*train("env.dt=2"), "env.dt = 2.0 is out of range"),
+    "dt nan": (*train("env.dt=.nan"), "env.dt = nan must be finite"),
+    "time limit huge": (*train("env.time_limit=1e9"),
+                        "env.time_limit = 1000000000.0 is out of range; allowed: > 0.0 and <= 1000.0"),
+    "time limit under dt": (*train("env.time_limit=0.1"), "env.time_limit = 0.1 must be >= env.dt = 0.25"),
+    "goal change interval huge": (*train("env.goal_change_interval=1e30"), "env.goal_change_interval = 1e+30 is out"),
+    "too many humans": (*train("env.num_humans=201"), "env.num_humans = 201 is out of range; allowed: >= 0 and <= 200"),
+    "negative humans": (*train("env.num_humans=-1"), "env.num_humans = -1 is out of range"),
+    "no humans to predict": (*train("env.num_humans=0", "env.predictor=const_vel"),
+                             "env.predictor = 'const_vel' needs humans to predict, but env.num_humans = 0"),
+    "negative radius": (*train("env.robot_radius=-0.3"), "env.robot_radius = -0.3 is out of range; allowed: > 0.0"),
+    "min above max": (*train("env.human_radius_min=0.6"), "env.human_radius_min = 0.6 must be <= env.human_radius_max"),
+    "goal too far": (*train("env.min_start_goal_dist=100"), "env.min_start_goal_dist = 100.0 cannot be met"),
+    "probability above 1": (*train("env.goal_change_prob=1.5"), "env.goal_change_prob = 1.5 is out of range"),
+    "prediction horizon 0": (*train("env.pred_horizon=0"), "env.pred_horizon = 0 is out of range; allowed: >= 1"),
+    "gst horizon": (*train("env.predictor=gst", "env.pred_horizon=4"), "env.pred_horizon = 4 must be 5"),
+    "total steps 1e20": (*train("ppo.total_steps=1e20"),
+                         "ppo.total_steps = 100000000000000000000 is out of range; allowed: >= 1 and <= 10000000000"),
+    "updates beyond int32": (*train("ppo.total_steps=1e10", "ppo.num_envs=1", "ppo.num_steps=1", "ppo.num_shards=1",
+                                    "ppo.num_minibatches=1"), "allowed: <= 2,147,483,647 (2,147,483,647 updates)"),
+    "less than one update": (*train("ppo.total_steps=10"), "ppo.total_steps = 10 is less than one update"),
+    "learning rate 2": (*train("ppo.lr=2"), "ppo.lr = 2.0 is out of range; allowed: > 0.0 and <= 1.0"),
+    "negative clip": (*train("ppo.clip_eps=-0.1"), "ppo.clip_eps = -0.1 is out of range"),
+    "gamma above 1": (*train("ppo.gamma=1.5"), "ppo.gamma = 1.5 is out of range"),
+    "envs not divisible": (*train("ppo.num_envs=10"), "ppo.num_envs = 10 must be divisible by ppo.num_shards"),
+    "zero sigma": (*train("reward.sigma_disc=0"), "reward.sigma_disc = 0.0 is out of range; allowed: > 0.0"),
+    "positive collision reward": (*train("reward.r_col=5"), "reward.r_col = 5.0 is out of range; allowed: <= 0.0"),
+    "unknown scheme": (*train("reward.scheme=scan"), "reward.scheme = 'scan' is not allowed"),
+    "network size": (*train("network.size=huge"), "network.size = 'huge' is not allowed"),
+    "log std": (*train("network.init_log_std=9"), "network.init_log_std = 9.0 is out of range"),
+    "negative seed": (*train("run.seed=-1"), "run.seed = -1 is out of range"),
+    "eval episodes huge": (*train("run.eval_episodes=1e9"),
+                           "run.eval_episodes = 1000000000 is out of range; allowed: >= 0 and <= 10000000"),
+    "keep no checkpoint": (*train("run.keep_checkpoints=0"), "run.keep_checkpoints = 0 is out of range"),
+    "render: episode too long": (*render("--policy", "orca", "--set", "env.time_limit=1e9"),
+                                 "env.time_limit = 1000000000.0 is out of range; allowed: > 0.0 and <= 1000.0"),
+    "eval: dt tiny": (*evaluate("--policy", "straight", "--set", "env.dt=1e-30"), "env.dt = 1e-30 is out of range"),
+    "eval: too many episodes": ("tgrf-eval", ["--episodes", "400000000"],
+                                "--episodes = 400000000 is out of range; allowed: 1 .. 10,000,000"),
+    # ---- config files
+    "missing file": ("tgrf-train", ["{tmp}/nope.yaml"], "config file '{tmp}/nope.yaml' does not exist"),
+    "directory as config": ("tgrf-train", ["{tmp}/adir"], "config file '{tmp}/adir' is a directory, not a YAML file"),
+    "not UTF-8": ("tgrf-train", ["{tmp}/latin1.yaml"], "config file '{tmp}/latin1.yaml' is not UTF-8 text"),
+    "duplicate key": ("tgrf-train", ["{tmp}/dup.yaml"], "found duplicate key 'ppo' (first given on line 1)"),
+    "invalid YAML": ("tgrf-train", ["{tmp}/broken.yaml"], "config file '{tmp}/broken.yaml' is not valid YAML"),
+    "list at the top": ("tgrf-train", ["{tmp}/list.yaml"], "'{tmp}/list.yaml' must hold a mapping at the top level"),
+    "eval: missing file": (*evaluate("{tmp}/nope.yaml"), "config file '{tmp}/nope.yaml' does not exist"),
+    "sweep: missing file": ("tgrf-sweep", ["{tmp}/nope.yaml", "--grid", "reward.h_disc=1,2"],
+                            "config file '{tmp}/nope.yaml' does not exist"),
+    # ---- grids and seeds
+    "grid of a static field": (*sweep(TINY, "--grid", "ppo.num_envs=8,16"), "--grid ppo.num_envs: cannot be gridded"),
+    "grid of seeds": (*sweep(TINY, "--grid", "run.seed=0,1"),
+                      "--grid 'run.seed=0,1': seeds are not a grid axis; give them with --seeds N"),
+    "grid key misspelt": (*sweep(TINY, "--grid", "reward.h_dsc=1,2"),
+                          "unknown config key 'reward.h_dsc' (did you mean 'reward.h_disc'?)"),
+    "grid without values": (*sweep(TINY, "--grid", "reward.h_disc"), "must look like section.field=v1,v2"),
+    "grid empty value": (*sweep(TINY, "--grid", "reward.h_disc=1,,2"), "--grid 'reward.h_disc=1,,2': empty value"),
+    "grid repeated value": (*sweep(TINY, "--grid", "reward.h_disc=1,1.0"),
+                            "--grid reward.h_disc: repeated value(s) 1.0"),
+    "grid value out of range": (*sweep(TINY, "--grid", "reward.sigma_disc=0.2,-1"),
+                                "--grid reward.sigma_disc=-1: reward.sigma_disc = -1.0 is out of range"),
+    "grid dt tiny": (*sweep(TINY, "--grid", "env.dt=0.25,1e-30"), "--grid env.dt=1e-30: env.dt = 1e-30 is out"),
+    "grid axis twice": (*sweep(TINY, "--grid", "reward.h_disc=1", "--grid", "reward.h_disc=2"),
+                        "--grid reward.h_disc is given twice"),
+    "zero seeds": (*sweep(TINY, "--seeds", "0"), "--seeds 0: the number of seeds must be >= 1"),
+    "negative seed in a list": (*sweep(TINY, "--seeds=-1,2"), "run.seed = -1 is out of range"),
+    "repeated seed": (*sweep(TINY, "--seeds", "3,3"), "--seeds 3,3: repeated seed"),
+    "seeds not a number": (*sweep(TINY, "--seeds", "abc"), "--seeds 'abc' must be a count"),
+    "eval: negative seed": (*evaluate("--seed", "-1"), "--seed = -1 is out of range; allowed: 0 .. 2147483647"),
+    "render: seed too large": (*render("--policy", "orca", "--seed", str(2**40)),
+                               f"--seed = {2**40} is out of range"),
+    # ---- output paths and run directories
+    "train: out-dir is a file": (*train(out="{tmp}/occupied"), "--out-dir '{tmp}/occupied' exists and is not a "
+                                 "directory"),
+    "train: out-dir under a file": (*train(out="{tmp}/occupied/run"),
+                                    "--out-dir '{tmp}/occupied/run' cannot be created: '{tmp}/occupied' is a file"),
+    "train: out-dir unwritable": (*train(out=UNWRITABLE), f"--out-dir '{UNWRITABLE}' is not writable"),
+    "train: out-dir holds a run": (*train(out="{run}"), "run directory '{run}' already holds a run; use --resume"),
+    "sweep: out is a file": (*sweep(TINY, out="{tmp}/occupied"), "--out '{tmp}/occupied' exists and is not a "
+                             "directory"),
+    "sweep: out unwritable": (*sweep(TINY, out=UNWRITABLE), f"--out '{UNWRITABLE}' is not writable"),
+    "eval: out is a directory": ("tgrf-eval", ["--episodes", "2", "--out", "{tmp}/adir"],
+                                 "--out '{tmp}/adir' is a directory; give a file name"),
+    "eval: out under a file": ("tgrf-eval", ["--episodes", "2", "--out", "{tmp}/occupied/e.json"],
+                               "cannot be created: '{tmp}/occupied' is a file"),
+    "eval: out unwritable": ("tgrf-eval", ["--episodes", "2", "--out", UNWRITABLE + "/e.json"],
+                             f"--out '{UNWRITABLE}/e.json' is not writable"),
+    "render: out is a file": (*render("--policy", "orca", out="{tmp}/occupied"),
+                              "--out '{tmp}/occupied' exists and is not a directory"),
+    "render: out unwritable": (*render("--policy", "orca", out=UNWRITABLE), f"--out '{UNWRITABLE}' is not writable"),
+    "reproduce: out is a file": ("tgrf-reproduce", ["table1", "--out", "{tmp}/occupied"],
+                                 "--out '{tmp}/occupied' is a file, not a directory"),
+    "reproduce: out unwritable": ("tgrf-reproduce", ["table1", "--out", UNWRITABLE],
+                                  f"--out '{UNWRITABLE}' is not writable"),
+    "predictor: dataset unwritable": ("tgrf-predictor", ["collect", "--out", UNWRITABLE + "/d.npz"],
+                                      f"--out '{UNWRITABLE}/d.npz' is not writable"),
+    "predictor: run dir is a file": ("tgrf-predictor", ["train", "--dataset", "{tmp}/d.npz", "--run-dir",
+                                                        "{tmp}/occupied"],
+                                     "--run-dir '{tmp}/occupied' exists and is not a directory"),
+    "resume: not a run": ("tgrf-train", ["--resume", "{tmp}/adir"], "is not a tgrf-train run directory"),
+    "resume: not a sweep": ("tgrf-sweep", ["--resume", "{tmp}/adir"], "is not a tgrf-sweep directory"),
+    "resume with --set": ("tgrf-train", ["--resume", "{run}", "--set", "ppo.lr=1e-3"],
+                          "--resume RUN_DIR takes no config file, --set or --out-dir"),
+    "from-step without resume": ("tgrf-train", [TINY, "--from-step", "4"],
+                                 "--from-step N continues a run from one of its checkpoints: it needs --resume "
+                                 "RUN_DIR"),
+    "resume of an edited config": ("tgrf-train", ["--resume", "{edited}"],
+                                   "was edited since the run started; on --resume only ppo.total_steps may change"),
+    "eval: step of a config": (*evaluate(TINY, "--step", "3"), "--step selects a checkpoint of a RUN_DIR"),
+    # ---- checkpoints
+    "eval: no such step": (*evaluate("{run}", "--step", "5"),
+                           "checkpoint '{run}/checkpoints/5' does not exist (available steps: [0])"),
+    "eval: damaged": (*evaluate("{damaged}"), "checkpoint '{damaged}/checkpoints/0' (step 0) is damaged"),
+    "eval: unreadable": (*evaluate("{garbage}"), "checkpoint '{garbage}/checkpoints/0' (step 0) is damaged: it cannot "
+                         "be read"),
+    "eval: network mismatch": (*evaluate("{mismatch}"), "checkpoint '{mismatch}/checkpoints/0' does not fit this "
+                               "config: opt_state: 21,131 values in the checkpoint"),
+    "eval: no checkpoints": (*evaluate("{nockpt}"), "checkpoint directory '{nockpt}/checkpoints' does not exist"),
+    "render: damaged": (*render("{damaged}"), "checkpoint '{damaged}/checkpoints/0' (step 0) is damaged"),
+    "render: network mismatch": (*render("{mismatch}"), "params: 10,565 values in the checkpoint, 140,549 here"),
+    "train: resume damaged": ("tgrf-train", ["--resume", "{damaged}"],
+                              "checkpoint '{damaged}/checkpoints/0' (step 0) is damaged: its content does not match "
+                              "the checksum written with it; no earlier step is intact"),
+    "train: from an absent step": ("tgrf-train", ["--resume", "{run}", "--from-step", "3"],
+                                   "--from-step 3: '{run}/checkpoints' holds no checkpoint of update 3; it holds: 0"),
+    "sweep: from an absent step": ("tgrf-sweep", ["--resume", "{sweep}", "--from-step", "3"],
+                                   "--from-step 3: '{sweep}/checkpoints' holds no checkpoint of update 3; it holds: "
+                                   "none"),
+    "sweep: negative from-step": ("tgrf-sweep", ["--resume", "{sweep}", "--from-step", "-1"],
+                                  "--from-step = -1 must be >= 0"),
+}
+X64 = {"train: 64-bit JAX": ("tgrf-train", [TINY], "JAX_ENABLE_X64 is on"),
+       "eval: 64-bit JAX": ("tgrf-eval", ["--episodes", "2"], "JAX_ENABLE_X64 is on")}
+
+
+def _flip_a_bit(step_dir):
+    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
+               key=lambda p: p.stat().st_size)
+    raw = bytearray(data.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    data.write_bytes(bytes(raw))
+
+
+@pytest.fixture(scope="module")
+def places(tmp_path_factory):
+    """Files and directories the cases name: bad config files, a file where a directory belongs, and tiny run
+    directories with their initial checkpoint (intact, a flipped bit, overwritten, not fitting its config, without
+    checkpoints, config edited) and a sweep stopped before its first checkpoint."""
+    import yaml
+
+    from tgrf_jax.config import TrainConfig
+    from tgrf_jax.sweep.grid import SweepSpec
+    from tgrf_jax.train.loop import train_run
+
+    tmp = tmp_path_factory.mktemp("bad_inputs")
+    (tmp / "adir").mkdir()
+    (tmp / "occupied").write_text("a file")
+    (tmp / "latin1.yaml").write_bytes("env:\n  dt: 0.25  # Schrittl\xe4nge\n".encode("latin-1"))
+    (tmp / "dup.yaml").write_text("ppo:\n  lr: 1.0e-4\nppo:\n  num_envs: 8\n")
+    (tmp / "broken.yaml").write_text("env: [unclosed\n")
+    (tmp / "list.yaml").write_text("- env\n- ppo\n")
+    (tmp / "foo.yaml").write_text("foo:\n  x: 1\nenv:\n  num_humans: 2\n")
+    config = TrainConfig.from_yaml(TINY, ["run.eval_episodes=0"])
+    train_run(config, tmp / "run", log=lambda m: None, stop_after_updates=0)  # config + the initial checkpoint
+    for name in ("damaged", "garbage", "mismatch", "nockpt", "edited"):
+        shutil.copytree(tmp / "run", tmp / name)
+    _flip_a_bit(tmp / "damaged" / "checkpoints" / "0")
+    for f in (tmp / "garbage" / "checkpoints" / "0").rglob("*"):
+        if f.is_file():
+            f.write_text("garbage")
+    text = (tmp / "run" / "config.yaml").read_text()
+    (tmp / "mismatch" / "config.yaml").write_text(text.replace("size: small", "size: paper"))
+    shutil.rmtree(tmp / "nockpt" / "checkpoints")
+    (tmp / "edited" / "config.yaml").write_text(text.replace("lr: 0.001", "lr: 0.002"))
+    # what a sweep killed before its first checkpoint leaves
+    spec = SweepSpec.create(TINY, ["reward.h_disc=1,2"])
+    (tmp / "sweep").mkdir()
+    (tmp / "sweep" / "config.yaml").write_text(spec.base_config.to_yaml())
+    (tmp / "sweep" / "sweep.yaml").write_text(yaml.safe_dump(spec.to_dict(), sort_keys=False))
+    return tmp
+
+
+RUN_DIRS = ("run", "damaged", "garbage", "mismatch", "nockpt", "edited", "sweep")
+
+
+def _run(places, capsys, tool, argv, expected):
+    def fmt(text):
+        for name in RUN_DIRS:
+            text = text.replace("{" + name + "}", str(places / name))
+        return text.replace("{tmp}", str(places))
+
+    reads_checkpoints = any("{" + name + "}" in a for a in argv for name in RUN_DIRS)
+    argv = [fmt(a) for a in argv]
+    with CompileCounter() as counter:
+        code = MAINS[tool](argv)
+    out = capsys.readouterr()
+    assert code == 2, out
+    assert out.err.startswith(f"{tool}: error: ") and fmt(expected) in out.err, out.err
+    assert "Traceback" not in out.err and "Event loop" not in out.err
+    assert counter.compiles == 0
+    if not reads_checkpoints:
+        assert counter.traces == 0
+    assert not (places / "fresh").exists()
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_is_named_before_anything_compiles(case, places, capsys):
+    _run(places, capsys, *CASES[case])
+
+
+@pytest.mark.parametrize("case", list(X64))
+def test_64_bit_jax_is_refused_in_one_line(case, places, capsys):
+    jax.config.update("jax_enable_x64", True)
+    try:
+        _run(places, capsys, *X64[case])
+    finally:
+        jax.config.update("jax_enable_x64", False)
+
+
+def test_the_catalogue_is_large_and_names_what_it_should():
+    assert len(CASES) + len(X64) >= 60
+    kinds = {"config keys": "unknown", "types": "must be a", "ranges": "out of range", "files": "config file",
+             "grids": "--grid", "seeds": "seed", "paths": "--out", "checkpoints": "checkpoint"}
+    for kind, word in kinds.items():
+        assert sum(word in expected for *_, expected in CASES.values()) >= 3, kind
+
+
+@pytest.mark.parametrize("tool, argv, error", [
+    ("train", ["--resume", "{damaged}"], "tgrf-train: error: checkpoint '{damaged}/checkpoints/0' (step 0) is "
+     "damaged: its content does not match the checksum written with it; no earlier step is intact"),
+    ("eval", ["{garbage}"], "tgrf-eval: error: checkpoint '{garbage}/checkpoints/0' (step 0) is damaged: it cannot "
+     "be read (JSONDecodeError: Expecting value: line 1 column 1 (char 0)); no earlier step is intact"),
+])
+def test_a_damaged_checkpoint_ends_the_process_with_its_error_alone(places, tool, argv, error):
+    """The whole stderr of a process stopped by a damaged checkpoint: the error; no log lines of orbax's, nothing
+    from its event loop at exit."""
+    import os
+    import subprocess
+    import sys
+
+    def fmt(text):
+        return text.replace("{damaged}", str(places / "damaged")).replace("{garbage}", str(places / "garbage"))
+
+    env = dict(os.environ, JAX_PLATFORMS="cpu", TGRF_JAX_COMPILE_CACHE="off",
+               PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    out = subprocess.run([sys.executable, "-m", f"tgrf_jax.cli.{tool}", *map(fmt, argv)], env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2
+    assert out.stderr.splitlines() == [fmt(error)]

@@ -1,0 +1,131 @@
+"""Checkpoints: a checksum of every step's content verified on restore, the damaged step and the intact earlier ones
+named, steps that do not fit the config described, zero-size arrays, steps written before checksums."""
+
+import pathlib
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+import pytest
+
+from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer, tree_digest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def state(step: int) -> dict:
+    return {"params": {"w": np.arange(2000, dtype=np.float32) + step, "b": np.full(3, step, np.int32)},
+            "humans": np.zeros((4, 0, 2), np.float32), "update": np.int32(step)}
+
+
+def flip_a_bit(step_dir: pathlib.Path) -> pathlib.Path:
+    """Flip one bit in the middle of the largest array data file of a step (what a failing disk does)."""
+    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
+               key=lambda p: p.stat().st_size)
+    raw = bytearray(data.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    data.write_bytes(bytes(raw))
+    return data
+
+
+@pytest.fixture
+def saved(tmp_path):
+    ckpt = Checkpointer(tmp_path / "ckpts", keep=5)
+    for step in (0, 4, 8, 12):
+        ckpt.save(step, state(step))
+    yield ckpt
+    ckpt.close()
+
+
+def test_restore_returns_what_was_saved_zero_size_arrays_included(saved):
+    restored = saved.restore(state(0))
+    assert tree_digest(restored) == tree_digest(state(12))
+    assert restored["humans"].shape == (4, 0, 2)  # orbax cannot store zero-size arrays: restored in their shape
+    template = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(np.shape(x), np.asarray(x).dtype), state(0))
+    assert tree_digest(saved.restore(template, 4)) == tree_digest(state(4))
+
+
+def test_a_flipped_bit_is_an_error_naming_the_step_and_the_intact_ones(saved):
+    flip_a_bit(saved.path(12))
+    flip_a_bit(saved.path(4))
+    with pytest.raises(CheckpointError, match=r"/12' \(step 12\) is damaged: its content does not match the "
+                                              r"checksum written with it; intact earlier steps: 0, 8") as e:
+        saved.restore(state(0))
+    assert (e.value.step, e.value.intact) == (12, (0, 8))
+    assert tree_digest(saved.restore(state(0), 8)) == tree_digest(state(8))
+
+
+def test_unreadable_steps_are_damaged_too(saved):
+    for f in saved.path(12).rglob("*"):
+        if f.is_file():
+            f.write_bytes(b"garbage")
+    flip_a_bit(saved.path(0))
+    with pytest.raises(CheckpointError, match=r"\(step 12\) is damaged: it cannot be read .*intact earlier steps: 4, "
+                                              r"8$") as e:
+        saved.restore(state(0))
+    assert e.value.intact == (4, 8)
+
+
+def test_a_step_that_does_not_fit_says_what_it_holds(saved):
+    bigger = state(0)
+    bigger["params"]["w"] = np.zeros(4000, np.float32)
+    with pytest.raises(CheckpointError, match=r"does not fit this config: params: 2,003 values in the checkpoint, "
+                                              r"4,003 here \(e.g. params/w \(2000,\) in the checkpoint, \(4000,\) "
+                                              r"here\)"):
+        saved.restore(bigger)
+    renamed = state(0)
+    renamed["params"]["v"] = renamed["params"].pop("w")
+    with pytest.raises(CheckpointError, match=r"params/v absent in the checkpoint, \(2000,\) here; params/w \(2000,\) "
+                                              r"in the checkpoint, absent here"):
+        saved.restore(renamed)
+
+
+def test_delete_after_and_missing_steps(saved):
+    assert saved.delete_after(4) == [8, 12] and saved.all_steps() == [0, 4]
+    with pytest.raises(CheckpointError, match=r"/8' does not exist \(available steps: \[0, 4\]\)"):
+        saved.restore(state(0), 8)
+
+
+def test_steps_written_before_checksums_restore_and_mix_with_new_ones(tmp_path):
+    def plain(step):
+        return state(step)["params"]
+
+    legacy = ocp.CheckpointManager(tmp_path, options=ocp.CheckpointManagerOptions(enable_async_checkpointing=False))
+    legacy.save(2, args=ocp.args.StandardSave(plain(2)), force=True)  # a step written before checksums
+    legacy.wait_until_finished()
+    legacy.close()
+    ckpt = Checkpointer(tmp_path)
+    assert tree_digest(ckpt.restore(plain(0))) == tree_digest(plain(2))
+    ckpt.save(4, plain(4))  # a resumed run goes on writing verified steps
+    assert tree_digest(ckpt.restore(plain(0))) == tree_digest(plain(4))
+    assert tree_digest(ckpt.restore(plain(0), 2)) == tree_digest(plain(2))
+    ckpt.close()
+
+
+def test_a_writer_removes_the_leftover_of_a_save_killed_mid_commit(saved):
+    leftover = saved.directory / "16.orbax-checkpoint-tmp"  # orbax's name for step 16 before its commit
+    leftover.mkdir()
+    (leftover / "half_written").write_bytes(b"x")
+    assert saved.all_steps() == [0, 4, 8, 12]
+    reader = Checkpointer(saved.directory, create=False)
+    assert tree_digest(reader.restore(state(0))) == tree_digest(state(12))
+    reader.close()
+    assert leftover.exists()  # a reader leaves it
+    writer = Checkpointer(saved.directory, keep=5)
+    writer.save(20, state(20))  # a writer has removed it by the time its first save returns
+    writer.close()
+    assert not leftover.exists() and saved.all_steps() == [0, 4, 8, 12, 20]
+
+
+def test_a_run_without_humans_checkpoints_and_resumes(tmp_path):
+    """env.num_humans = 0 is allowed (an empty crowd): its states hold zero-size arrays, which orbax cannot store."""
+    from tgrf_jax.config import TrainConfig
+    from tgrf_jax.train.loop import restore_run, train_run
+
+    config = TrainConfig.from_yaml(ROOT / "configs" / "tiny.yaml", ["env.num_humans=0", "run.eval_episodes=0"])
+    first = train_run(config, tmp_path / "run", log=lambda m: None, stop_after_updates=0)
+    assert first.state.env_state.humans.pos.shape == (8, 0, 2)
+    _, restored = restore_run(tmp_path / "run")
+    assert tree_digest(restored) == tree_digest(first.state)
+    again = train_run(config, tmp_path / "run", resume=True, log=lambda m: None, stop_after_updates=0)
+    assert again.updates == 0 and tree_digest(again.state) == tree_digest(first.state)
