@@ -83,3 +83,14 @@ class CompileCounter:
         jax.monitoring.unregister_event_duration_listener(self._listener)
         return False
 
+
+
+def flip_a_bit(step_dir):
+    """Flip one bit in the middle of the largest array data file of a checkpoint step (what a failing disk does);
+    returns that file."""
+    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
+               key=lambda p: p.stat().st_size)
+    raw = bytearray(data.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    data.write_bytes(bytes(raw))
+    return data

@@ -12,7 +12,7 @@ import shutil
 import jax
 import pytest
 
-from helpers import CompileCounter
+from helpers import CompileCounter, flip_a_bit
 
 from tgrf_jax.cli import eval_main, predictor_main, render_main, reproduce_main, sweep_main, train_main
 
@@ -214,14 +214,6 @@ X64 = {"train: 64-bit JAX": ("tgrf-train", [TINY], "JAX_ENABLE_X64 is on"),
        "eval: 64-bit JAX": ("tgrf-eval", ["--episodes", "2"], "JAX_ENABLE_X64 is on")}
 
 
-def _flip_a_bit(step_dir):
-    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
-               key=lambda p: p.stat().st_size)
-    raw = bytearray(data.read_bytes())
-    raw[len(raw) // 2] ^= 0x10
-    data.write_bytes(bytes(raw))
-
-
 @pytest.fixture(scope="module")
 def places(tmp_path_factory):
     """Files and directories the cases name: bad config files, a file where a directory belongs, and tiny run
@@ -245,7 +237,7 @@ def places(tmp_path_factory):
     train_run(config, tmp / "run", log=lambda m: None, stop_after_updates=0)  # config + the initial checkpoint
     for name in ("damaged", "garbage", "mismatch", "nockpt", "edited"):
         shutil.copytree(tmp / "run", tmp / name)
-    _flip_a_bit(tmp / "damaged" / "checkpoints" / "0")
+    flip_a_bit(tmp / "damaged" / "checkpoints" / "0")
     for f in (tmp / "garbage" / "checkpoints" / "0").rglob("*"):
         if f.is_file():
             f.write_text("garbage")

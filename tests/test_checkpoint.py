@@ -9,6 +9,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer, tree_digest
+from helpers import flip_a_bit
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -16,16 +17,6 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 def state(step: int) -> dict:
     return {"params": {"w": np.arange(2000, dtype=np.float32) + step, "b": np.full(3, step, np.int32)},
             "humans": np.zeros((4, 0, 2), np.float32), "update": np.int32(step)}
-
-
-def flip_a_bit(step_dir: pathlib.Path) -> pathlib.Path:
-    """Flip one bit in the middle of the largest array data file of a step (what a failing disk does)."""
-    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
-               key=lambda p: p.stat().st_size)
-    raw = bytearray(data.read_bytes())
-    raw[len(raw) // 2] ^= 0x10
-    data.write_bytes(bytes(raw))
-    return data
 
 
 @pytest.fixture

@@ -25,7 +25,7 @@ from tgrf_jax.sweep import (
 )
 from tgrf_jax.train.loop import restore_run, train_run
 
-from helpers import CompileCounter
+from helpers import CompileCounter, flip_a_bit
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -185,14 +185,6 @@ def test_resume_after_interruption_matches_uninterrupted(sweep, tmp_path):
     assert len(_rows(out / "metrics.csv")) == 6 * 6  # the rows of the re-run chunk are not duplicated
 
 
-def _flip_a_bit(step_dir):
-    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
-               key=lambda p: p.stat().st_size)
-    raw = bytearray(data.read_bytes())
-    raw[len(raw) // 2] ^= 0x10
-    data.write_bytes(bytes(raw))
-
-
 def test_resume_of_a_finished_sweep_recreates_its_results(sweep, tmp_path):
     out = tmp_path / "copy"
     shutil.copytree(sweep, out)
@@ -223,7 +215,7 @@ def test_resume_of_a_finished_sweep_recreates_its_results(sweep, tmp_path):
 def test_damaged_checkpoint_names_intact_steps_and_resumes_from_one(sweep, tmp_path, capsys):
     out = tmp_path / "copy"
     shutil.copytree(sweep, out)
-    _flip_a_bit(out / "checkpoints" / "12")
+    flip_a_bit(out / "checkpoints" / "12")
     assert main(["--resume", str(out)]) == 2
     err = capsys.readouterr().err
     assert "(step 12) is damaged: its content does not match the checksum" in err

@@ -13,7 +13,7 @@ import time
 import jax
 import pytest
 
-from helpers import CompileCounter
+from helpers import CompileCounter, flip_a_bit
 
 from tgrf_jax.cli import eval_main, train_main
 from tgrf_jax.train.checkpoint import CheckpointError
@@ -102,14 +102,6 @@ def test_missing_and_corrupt_checkpoints_fail_clearly(tiny_run, tmp_path, capsys
     assert str(latest) in capsys.readouterr().err
 
 
-def _flip_a_bit(step_dir):
-    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
-               key=lambda p: p.stat().st_size)
-    raw = bytearray(data.read_bytes())
-    raw[len(raw) // 2] ^= 0x10
-    data.write_bytes(bytes(raw))
-
-
 def test_resume_of_a_finished_run_trains_and_evaluates_nothing(tiny_run, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
@@ -126,7 +118,7 @@ def test_resume_of_a_finished_run_trains_and_evaluates_nothing(tiny_run, tmp_pat
 def test_damaged_checkpoint_names_intact_steps_and_resumes_from_one(tiny_run, tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    _flip_a_bit(run / "checkpoints" / "12")
+    flip_a_bit(run / "checkpoints" / "12")
     with pytest.raises(CheckpointError, match="is damaged") as e:
         restore_run(run)
     assert (e.value.step, e.value.intact) == (12, (4, 8))
