@@ -1,6 +1,6 @@
 """`EnvParams.validate()`: hand-built parameters checked on the host against the declarations in tgrf_jax.config (the
-same ranges and relations as a config), and checked wherever concrete parameters enter: evaluate, record_episodes
-and a trainer's init."""
+same ranges and relations as a config), and checked wherever concrete parameters enter: evaluate, record_episodes,
+a trainer's init and a sweep's runs."""
 
 import pathlib
 
@@ -79,4 +79,23 @@ def test_a_trainer_checks_hand_built_hyper_parameters():
             t.init(key, negative_lr)
         with pytest.raises(ConfigError, match=r"env.dt = 0.0 is out of range"):
             t.init(key, zero_dt)
+    assert counter.compiles == 0
+
+
+def test_a_sweep_checks_every_run_s_hyper_parameters(monkeypatch):
+    from tgrf_jax.sweep import SweepSpec
+    from tgrf_jax.sweep.program import SweepBatch
+    from tgrf_jax.train import ppo
+
+    runs = SweepSpec.create(str(ROOT / "configs" / "tiny.yaml"), ["reward.h_disc=1,2"], "1", []).runs()
+    real = ppo.hparams_from_config
+
+    def second_run_with_zero_dt(config):  # what a bug between the config and the program could hand over
+        hp = real(config)
+        return hp.replace(env=hp.env.replace(dt=np.float32(0.0))) if config.reward.h_disc == 2 else hp
+
+    monkeypatch.setattr(ppo, "hparams_from_config", second_run_with_zero_dt)
+    with CompileCounter() as counter:
+        with pytest.raises(ConfigError, match=r"env.dt\[1\] = 0.0 is out of range"):
+            SweepBatch(runs, jax.local_devices()[:1])
     assert counter.compiles == 0

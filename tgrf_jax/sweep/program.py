@@ -218,7 +218,7 @@ class SweepBatch:
     def __init__(self, runs, devices):
         import jax
 
-        from tgrf_jax.train.ppo import hparams_from_config
+        from tgrf_jax.train.ppo import check_hparams, hparams_from_config
 
         self.runs = runs
         configs = [r.config for r in runs]
@@ -233,6 +233,7 @@ class SweepBatch:
                 raise ConfigError(f"run {r.name}: its hyper-parameters have another structure than run "
                                   f"{runs[0].name}'s; it cannot share the compiled program")
         self.hparams = _stack(hps)
+        check_hparams(self.hparams)  # each run's concrete values, as tgrf-train's init checks them
         self.keys = _stack([jax.random.PRNGKey(c.run.seed) for c in configs])
         self.program = get_program(configs[0], devices)
         self.config = configs[0]
