@@ -25,6 +25,8 @@ _OWNED_CACHE = None
 
 def pytest_configure(config):
     global _OWNED_CACHE
+    if getattr(config.option, "loadscopereorder", False):
+        config.option.loadscopereorder = False  # keep the order of pytest_collection_modifyitems below
     if "TGRF_JAX_COMPILE_CACHE" not in os.environ:
         _OWNED_CACHE = tempfile.mkdtemp(prefix="tgrf-jax-tests-")
         os.environ["TGRF_JAX_COMPILE_CACHE"] = _OWNED_CACHE
@@ -36,3 +38,21 @@ def pytest_configure(config):
 def pytest_unconfigure(config):
     if _OWNED_CACHE is not None:
         shutil.rmtree(_OWNED_CACHE, ignore_errors=True)
+
+
+# Test modules, longest first (their summed --durations in CI); modules not listed follow in pytest's order.
+# `--dist loadscope` hands each worker one module at a time in collection order, and by default first reorders the
+# modules by their number of tests, which leaves the few long training modules for last: one worker then runs
+# them alone while the other has nothing left to do. Longest first lets the short modules fill the end.
+LONGEST_FIRST = (
+    "test_ppo.py", "test_sweep.py", "test_env.py", "test_orca.py", "test_notebooks.py", "test_shards.py",
+    "test_predictor_train.py", "test_evaluate.py", "test_reproduce.py", "test_nets.py", "test_predictor_env.py",
+    "test_curves.py", "test_train_cli.py", "test_render.py", "test_lock.py", "test_properties.py", "test_frames.py",
+    "test_batching.py", "test_compile_cache.py", "test_bad_inputs.py", "test_predictor_parity.py",
+    "test_pretrained.py", "test_cpu.py",
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each module keeps its own order

@@ -60,19 +60,31 @@ def test_robot_at_its_goal_gives_finite_inputs():
 def test_goal_frame_policy_is_rotation_equivariant(name):
     net = make_network(name, "small", obs_human_dim=12, num_humans=5, frame="goal", rotate_action=True,
                        init_log_std=-0.7)
-    params = net.init(jax.random.PRNGKey(0))
+    # initialisation and forward passes jitted: run eagerly, every operation is a program of its own
+    params = jax.jit(net.init)(jax.random.PRNGKey(0))
     np.testing.assert_allclose(params["params"]["heads"]["log_std"], -0.7)
     obs = random_obs(jax.random.PRNGKey(4), (3,), 5, 12)
     angle = 1.1
     moved = transform_world(obs, angle, jnp.array([-3.0, 2.0]))
     carry = net.initialize_carry(3)
-    _, pi_a, v_a = net.apply(params, carry, obs, None)
-    _, pi_b, v_b = net.apply(params, carry, moved, None)
+
+    def mean_and_value(net):
+        @jax.jit
+        def run(params, obs):
+            _, pi, value = net.apply(params, carry, obs, None)
+            return pi.mean(), value
+
+        return run
+
+    goal_frame = mean_and_value(net)
+    mean_a, v_a = goal_frame(params, obs)
+    mean_b, v_b = goal_frame(params, moved)
     np.testing.assert_allclose(v_a, v_b, rtol=1e-4, atol=1e-4)
-    np.testing.assert_allclose(rotate(pi_a.mean(), angle), pi_b.mean(), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(rotate(mean_a, angle), mean_b, rtol=1e-4, atol=1e-4)
     # the world-frame policy has no such symmetry (sanity check that the test can fail)
     world = make_network(name, "small", obs_human_dim=12, num_humans=5)
-    wp = world.init(jax.random.PRNGKey(0))
-    _, w_a, _ = world.apply(wp, carry, obs, None)
-    _, w_b, _ = world.apply(wp, carry, moved, None)
-    assert not np.allclose(rotate(w_a.mean(), angle), w_b.mean(), atol=1e-3)
+    wp = jax.jit(world.init)(jax.random.PRNGKey(0))
+    world_frame = mean_and_value(world)
+    w_a, _ = world_frame(wp, obs)
+    w_b, _ = world_frame(wp, moved)
+    assert not np.allclose(rotate(w_a, angle), w_b, atol=1e-3)

@@ -38,8 +38,9 @@ def random_obs(key, batch_shape, num_humans, dim, num_visible=None):
 @functools.lru_cache(maxsize=None)
 def built(name, size, dim, num_humans=N):
     net = make_network(name, size, obs_human_dim=dim, num_humans=num_humans)
-    # an "rbg" key compiles the random initialisers faster than threefry; `PRNGKey` keys are tested below
-    params = net.init(jax.random.key(0, impl="rbg"))
+    # an "rbg" key compiles the random initialisers faster than threefry; `PRNGKey` keys are tested below. Jitted:
+    # run eagerly, every initialiser of every distinct layer shape is a program of its own (hundreds for hh_attn).
+    params = jax.jit(net.init)(jax.random.key(0, impl="rbg"))
 
     @jax.jit
     def step(p, carry, obs, resets):  # -> (carry, mean, std, value)
@@ -85,7 +86,7 @@ def test_param_counts_match_reference():
             assert n_params(name, "small", dim) < n_params(name, "paper", dim)
     # the real initialisation (with a raw uint32 PRNGKey) has the same structure
     net = make_network("mlp", "small", obs_human_dim=12, num_humans=N)
-    assert count_params(net.init(jax.random.PRNGKey(0))) == n_params("mlp", "small", 12)
+    assert count_params(jax.jit(net.init)(jax.random.PRNGKey(0))) == n_params("mlp", "small", 12)
 
 
 def test_wrong_obs_shape_raises():
@@ -112,9 +113,14 @@ def test_output_shapes(name, size, dim):
     assert mean.shape == (B, 2) and std.shape == (B, 2) and value.shape == (B,)
     np.testing.assert_allclose(std, 1.0)  # log-std initialised to 0
     assert all_finite((new_carry, mean, value))
-    _, pi, _ = net.apply(params, carry, obs, jnp.zeros(B, bool))
-    assert pi.sample(seed=jax.random.PRNGKey(0)).shape == (B, 2)
-    assert pi.log_prob(jnp.zeros((B, 2))).shape == (B,)
+
+    @jax.jit  # one program rather than one per operation of the network
+    def sample_and_log_prob(params, carry, obs):
+        _, pi, _ = net.apply(params, carry, obs, jnp.zeros(B, bool))
+        return pi.sample(seed=jax.random.PRNGKey(0)), pi.log_prob(jnp.zeros((B, 2)))
+
+    sample, log_prob = sample_and_log_prob(params, carry, obs)
+    assert sample.shape == (B, 2) and log_prob.shape == (B,)
 
 
 @pytest.mark.parametrize("name", NETWORK_NAMES)

@@ -91,7 +91,7 @@ def test_gru_carry_resets_at_episode_boundaries():
     from tgrf_jax.nets import make_network
 
     net = make_network("hh_attn", "small", obs_human_dim=2, num_humans=3)
-    params = net.init(jax.random.PRNGKey(0))
+    params = jax.jit(net.init)(jax.random.PRNGKey(0))  # one program, not one per initialiser and layer shape
     T, B = 6, 2
     k = jax.random.split(jax.random.PRNGKey(1), 3)
     obs = net.dummy_obs(1)
@@ -104,11 +104,18 @@ def test_gru_carry_resets_at_episode_boundaries():
     )
     resets = jnp.zeros((T, B), bool).at[3, 0].set(True)
     carry0 = jax.tree_util.tree_map(lambda c: c + 0.5, net.initialize_carry(B))  # a non-zero stored carry
-    _, pi, values = net.apply_sequence(params, carry0, obs, resets)
-    tail = jax.tree_util.tree_map(lambda x: x[3:], obs)
-    _, pi_fresh, values_fresh = net.apply_sequence(params, net.initialize_carry(B), tail, jnp.zeros((T - 3, B), bool))
+
+    @jax.jit
+    def replay(params, carry0, obs, resets):
+        _, pi, values = net.apply_sequence(params, carry0, obs, resets)
+        tail = jax.tree_util.tree_map(lambda x: x[3:], obs)
+        _, pi_fresh, values_fresh = net.apply_sequence(params, net.initialize_carry(B), tail,
+                                                       jnp.zeros((T - 3, B), bool))
+        return pi.mean(), values, pi_fresh.mean(), values_fresh
+
+    means, values, means_fresh, values_fresh = replay(params, carry0, obs, resets)
     np.testing.assert_allclose(values[3:, 0], values_fresh[:, 0], rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(pi.mean()[3:, 0], pi_fresh.mean()[:, 0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(means[3:, 0], means_fresh[:, 0], rtol=1e-5, atol=1e-6)
     # env 1 was not reset: it still carries its history
     assert not np.allclose(values[3:, 1], values_fresh[:, 1], atol=1e-4)
 
@@ -123,17 +130,18 @@ def test_rollout_replay_matches_stored_log_probs_and_values():
     state = t.init(jax.random.PRNGKey(3), t.default_hparams)
     state = state.replace(carry=jax.tree_util.tree_map(lambda c: c + 0.3, state.carry), resets=state.resets & False)
 
-    @jax.jit
+    @jax.jit  # the rollout and its replay in one program (run eagerly, the replay compiles op by op)
     def go(state):
-        return tr.rollout(state, jax.random.PRNGKey(4))
+        new_state, traj, carry0, last_value, ep = tr.rollout(state, jax.random.PRNGKey(4))
+        _, pi, values = tr.net.apply_sequence(state.params, carry0, traj.obs, traj.resets)
+        return traj, last_value, ep, values, pi.log_prob(traj.action)
 
-    new_state, traj, carry0, last_value, ep = go(state)
+    traj, last_value, ep, values, log_prob = go(state)
     assert bool(jnp.any(traj.truncated)) and int(ep["timeouts"]) > 0
     assert bool(jnp.all(traj.resets[1:] == traj.done[:-1]))  # reset = previous step ended the episode
     assert bool(jnp.all(jnp.where(traj.truncated, traj.final_value != 0, traj.final_value == 0)))
-    _, pi, values = tr.net.apply_sequence(state.params, carry0, traj.obs, traj.resets)
     np.testing.assert_allclose(values, traj.value, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(pi.log_prob(traj.action), traj.log_prob, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(log_prob, traj.log_prob, rtol=1e-5, atol=1e-4)
     # final values are V(final_obs) computed with the carry after the step (not reset)
     assert np.isfinite(np.asarray(last_value)).all()
 
@@ -156,17 +164,19 @@ def test_same_seed_same_parameters_bitwise():
 
 
 def test_chunking_does_not_change_the_result():
+    # one chunk of 2 updates (the program compiled for the test above) against two chunks of 1: every chunk length
+    # is a program of its own
     cfg = tiny_config()
     t = make_train(cfg)
     s1 = t.init(jax.random.PRNGKey(0), t.default_hparams)
-    s1, _ = t.run_chunk(s1, 4)
+    s1, _ = t.run_chunk(s1, 2)
     s2 = t.init(jax.random.PRNGKey(0), t.default_hparams)
     s2, _ = t.run_chunk(s2, 1)
-    s2, _ = t.run_chunk(s2, 3)
+    s2, _ = t.run_chunk(s2, 1)
     np.testing.assert_allclose(
         np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(s1.params)]),
         np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(s2.params)]), rtol=1e-6, atol=1e-7)
-    assert int(s1.update) == int(s2.update) == 4
+    assert int(s1.update) == int(s2.update) == 2
 
 
 def test_gradient_microbatches_give_the_same_update():
@@ -206,7 +216,7 @@ def test_train_is_vmappable_over_seeds_and_hparams():
 
     (jit(vmap(train)) with init and updates fused in ONE program hangs in XLA:CPU on this machine (jax 0.10.2);
     the two-program form below is equivalent and is what sweeps should use.)"""
-    cfg = tiny_config(ppo={"total_steps": 8 * 8 * 2})
+    cfg = tiny_config()  # the config of the tests above: the unbatched 2-update chunk below is compiled already
     t = make_train(cfg)
     hp = t.default_hparams
     hps = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), hp)

@@ -15,7 +15,8 @@ def constant_step_params(step_xy):
     """Parameters whose every prediction moves by `step_xy` per step: all weights zero, head bias (dx, dy, ...).
 
     Zero weights make the spatial block and the LSTM output zero, so the head returns its bias."""
-    params = jax.tree_util.tree_map(jnp.zeros_like, predictor.init_params(jax.random.key(0)))
+    # (jitted: run eagerly, every initialiser of every layer shape is a program of its own)
+    params = jax.tree_util.tree_map(jnp.zeros_like, jax.jit(predictor.init_params)(jax.random.key(0)))
     bias = jnp.array([step_xy[0], step_xy[1], 0.0, 0.0, 0.0])
     return {**params, "head": {**params["head"], "bias": bias}}
 
@@ -43,7 +44,7 @@ def test_default_params_are_the_shipped_weights():
 
 def test_history_is_reset_at_every_episode_start(env):
     params = env.default_params
-    step = jax.jit(env.step)
+    step, step_env = jax.jit(env.step), jax.jit(env.step_env)
     obs, state = jax.jit(env.reset)(jax.random.key(0), params)
     assert not np.asarray(state.history.visible[:, :4]).any()
     ended = 0
@@ -57,8 +58,8 @@ def test_history_is_reset_at_every_episode_start(env):
             visible = np.asarray(h.visible[:, 4])
             np.testing.assert_allclose(np.asarray(h.positions[visible, 4]), np.asarray(new_state.humans.pos)[visible])
             # the terminal step's reward (r_pred included) comes from the episode that ended, not the next one
-            _, _, reward_no_reset, *_ = env.step_env(jax.random.split(jax.random.key(i + 1))[0], state,
-                                                    jnp.zeros(2), params)
+            _, _, reward_no_reset, *_ = step_env(jax.random.split(jax.random.key(i + 1))[0], state, jnp.zeros(2),
+                                                 params)
             np.testing.assert_allclose(float(reward), float(reward_no_reset))
         else:
             # frames shift by one and the new frame is appended
@@ -69,7 +70,7 @@ def test_history_is_reset_at_every_episode_start(env):
 
 def test_prediction_slots_as_the_reference_places_them(env):
     params = env.default_params
-    _, state = env.reset(jax.random.key(3), params)
+    _, state = jax.jit(env.reset)(jax.random.key(3), params)
     # hand-made history: every human seen in all five frames, walking at constant velocity
     vel = jnp.array([[0.5, 0.0], [0.0, -0.4], [0.3, 0.3]])
     times = jnp.arange(-4, 1, dtype=jnp.float32)[None, :, None] * 0.25
@@ -135,7 +136,7 @@ def test_jit_vmap_and_weights_swap_without_recompiling():
     env = make_env(num_humans=4, human_policy="social_force", predictor="gst")
     params = env.default_params
     keys = jax.random.split(jax.random.key(1), 3)
-    obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
     actions = jnp.zeros((3, 2))
     for _ in range(3):
@@ -143,14 +144,14 @@ def test_jit_vmap_and_weights_swap_without_recompiling():
     batched = step(keys, state, actions, params)
     # each env's slots hold the model's predictions from that env's own history
     new_state = batched[1]
-    pred = jax.vmap(gst_history.predictions, in_axes=(None, 0))(params.predictor, new_state.history)
+    pred = jax.jit(jax.vmap(gst_history.predictions, in_axes=(None, 0)))(params.predictor, new_state.history)
     for e in range(3):
         rows, mask = np.asarray(batched[0].humans[e]), np.asarray(batched[0].human_mask[e])
         expected = np.asarray(pred.means[e] - new_state.robot.pos[e]).reshape(4, 10)
         seen = np.asarray(new_state.history.visible[e, :, -1])
         got = {tuple(np.round(r[2:], 4)) for r in rows[mask]}
         assert got == {tuple(np.round(x, 4)) for x in expected[seen]}
-    other = params.replace(predictor=predictor.init_params(jax.random.key(7)))
+    other = params.replace(predictor=jax.jit(predictor.init_params)(jax.random.key(7)))
     swapped = step(keys, state, actions, other)
     assert step._cache_size() == 1  # new weights are a traced input, not a new program
     visible = np.asarray(batched[0].human_mask)

@@ -24,10 +24,6 @@ def sharded_config(**ppo) -> TrainConfig:
     })
 
 
-def flat_params(state):
-    return np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(jax.device_get(state.params))])
-
-
 def test_shard_sizes_follow_the_config():
     p = sharded_config(num_envs=64, num_minibatches=4, microbatch_envs=4, reset_ratio=8, total_steps=64 * 8).ppo
     assert (p.shard_envs, p.num_microbatches, p.reset_slots) == (32, 2, 4)  # 8-env minibatches in 4-env slices
@@ -53,58 +49,65 @@ def test_statistics_are_taken_over_all_shards():
     assert not np.array_equal(keys[0], keys[1])  # shards draw their own envs and minibatches
 
 
-def test_sharded_training_is_deterministic_and_learns_something():
-    t = make_train(sharded_config(), devices=None)
-    assert t.trainer.mesh is None
-    runs = []
-    for _ in range(2):
-        state, metrics = t.run_chunk(t.init(jax.random.PRNGKey(3), t.default_hparams), 3)
-        runs.append((flat_params(state), {k: float(v) for k, v in metrics.items()}, state))
-    (a, ma, sa), (b, mb, _) = runs
-    np.testing.assert_array_equal(a, b)
-    assert ma == mb
-    assert np.all(np.isfinite(a)) and np.abs(a - flat_params(t.init(jax.random.PRNGKey(3)))).max() > 1e-4
-    assert sa.obs.humans.shape[0] == 8 and int(sa.update) == 3  # whole-batch layout between chunks
-
-
+# One fresh process (the device count is fixed when JAX starts) with two CPU devices trains the same config as the
+# shards on one device each (shard_map) and vmapped on one device, the latter twice: compiling these programs is
+# most of this file's time, so the tests below share that one process.
 PLACEMENTS = r"""
-import json, jax, numpy as np
+import json, sys, jax, numpy as np
 from tgrf_jax.config import TrainConfig
 from tgrf_jax.train import make_train, shards
 
-cfg = TrainConfig.from_dict({
-    "env": {"num_humans": 3, "predictor": "const_vel"}, "network": {"name": "hh_attn"},
-    "ppo": {"num_envs": 8, "num_steps": 8, "total_steps": 256, "update_epochs": 2, "num_minibatches": 2,
-            "num_shards": 2}})
-out = {"devices": len(jax.devices())}
-for name, devices in (("mesh", "auto"), ("vmap", None)):
-    t = make_train(cfg, devices=devices)
-    state, metrics = t.run_chunk(t.init(jax.random.PRNGKey(0), t.default_hparams), 3)
-    out[name] = {
-        "placement": shards.describe(2, t.trainer.mesh),
-        "params": np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(jax.device_get(state.params))]).tolist(),
-        "episodes": float(metrics["episodes"]), "loss": float(metrics["loss"]),
-        "obs": np.asarray(state.obs.humans).ravel().tolist(),
+def flat(tree):
+    return np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(jax.device_get(tree))]).tolist()
+
+def train(t):
+    initial = t.init(jax.random.PRNGKey(3), t.default_hparams)
+    state, metrics = t.run_chunk(initial, 3)
+    return {
+        "placement": shards.describe(2, t.trainer.mesh), "mesh_is_none": t.trainer.mesh is None,
+        "params": flat(state.params), "initial_params": flat(initial.params),
+        "metrics": {k: float(v) for k, v in metrics.items()},
+        "obs": np.asarray(state.obs.humans).ravel().tolist(), "obs_envs": int(state.obs.humans.shape[0]),
+        "update": int(state.update),
     }
-print(json.dumps(out))
+
+cfg = TrainConfig.from_dict(json.loads(sys.argv[1]))
+mesh, vmap = make_train(cfg, devices="auto"), make_train(cfg, devices=None)
+print(json.dumps({"devices": len(jax.devices()), "mesh": train(mesh), "vmap": train(vmap), "vmap_again": train(vmap)}))
 """
 
 
-def test_shards_on_two_devices_match_shards_vmapped_on_one():
-    """The same config on one CPU device per shard (shard_map) and vmapped on one device: the same numbers up to
-    float rounding (a fresh process: the device count is fixed when JAX starts)."""
+@pytest.fixture(scope="module")
+def placements():
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2")
     # the timeout is a hang guard for a busy machine, not a speed check
-    out = subprocess.run([sys.executable, "-c", PLACEMENTS], env=env, capture_output=True, text=True, timeout=900)
+    out = subprocess.run([sys.executable, "-c", PLACEMENTS, json.dumps(sharded_config().to_dict())], env=env,
+                         capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr
-    r = json.loads(out.stdout.strip().splitlines()[-1])
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_sharded_training_is_deterministic_and_learns_something(placements):
+    a, b = placements["vmap"], placements["vmap_again"]
+    assert a["mesh_is_none"] and b["mesh_is_none"]
+    assert a["params"] == b["params"] and a["metrics"] == b["metrics"] and a["obs"] == b["obs"]
+    params, initial = np.asarray(a["params"]), np.asarray(a["initial_params"])
+    assert np.all(np.isfinite(params)) and np.abs(params - initial).max() > 1e-4
+    assert a["obs_envs"] == 8 and a["update"] == 3  # whole-batch layout between chunks
+
+
+def test_shards_on_two_devices_match_shards_vmapped_on_one(placements):
+    """The same config on one CPU device per shard (shard_map) and vmapped on one device: the same numbers up to
+    float rounding."""
+    r = placements
     assert r["devices"] == 2
     mesh, vmap = r["mesh"], r["vmap"]
     assert mesh["placement"] == "2 shards on devices 0, 1" and vmap["placement"] == "2 shards vmapped on one device"
+    assert not mesh["mesh_is_none"]
     np.testing.assert_allclose(mesh["params"], vmap["params"], rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(mesh["obs"], vmap["obs"], rtol=1e-4, atol=1e-5)
-    assert mesh["episodes"] == vmap["episodes"]
-    np.testing.assert_allclose(mesh["loss"], vmap["loss"], rtol=1e-4, atol=1e-6)
+    assert mesh["metrics"]["episodes"] == vmap["metrics"]["episodes"]
+    np.testing.assert_allclose(mesh["metrics"]["loss"], vmap["metrics"]["loss"], rtol=1e-4, atol=1e-6)
 
 
 def test_a_mesh_needs_one_device_per_shard():
