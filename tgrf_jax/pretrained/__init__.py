@@ -101,6 +101,7 @@ def export(run_dir, dest, meta: dict | None = None, step: int | None = None) -> 
     dest = pathlib.Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    tmp.chmod(0o755)  # mkdtemp makes it private; an exported policy is data for every user of the checkout
     try:
         (tmp / "config.yaml").write_text(config.to_yaml())
         arrays = {k: np.asarray(v) for k, v in _flatten(jax.device_get(state.params)).items()}
