@@ -1,6 +1,7 @@
 """tgrf-reproduce: experiment files, the resumable row runner and the paper-layout report."""
 
 import csv
+import dataclasses
 import json
 import math
 import pathlib
@@ -143,6 +144,11 @@ def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
     assert runner.reproduce(exp, out, log=lines.append) == 0
     assert (out / "mlp" / "provenance.json").read_text() == wall
     assert not any("row 1/1" in line for line in lines)
+    # Run as a selection of a larger experiment's rows, the report still covers all of them.
+    whole = dataclasses.replace(exp, rows=exp.rows + (dataclasses.replace(exp.rows[0], name="later", label="Later"),))
+    assert runner.reproduce(whole.shrunk(rows=["mlp"]), out, log=lines.append, report_exp=whole) == 0
+    md = (out / "report.md").read_text()
+    assert "Rows finished: 1/2" in md and "(55.0)" in md and "| Later |" in md
     # Other settings into the same directory are refused.
     with pytest.raises(ConfigError, match="holds results of this experiment with other settings"):
         runner.reproduce(exp.shrunk(steps=512), out)

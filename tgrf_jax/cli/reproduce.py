@@ -47,7 +47,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"name an experiment: {', '.join(spec_lib.available())}")
         exp = spec_lib.load(args.experiment)
         rows = [r.strip() for r in args.rows.split(",") if r.strip()] if args.rows else None
-        exp = exp.shrunk(steps=args.steps, seeds=args.seeds, rows=rows)
+        whole = exp.shrunk(steps=args.steps, seeds=args.seeds)  # the report always covers every row
+        exp = whole.shrunk(rows=rows)
         out = pathlib.Path(args.out or pathlib.Path("runs") / "reproduce" / exp.name)
         runner.check_out_dir(exp, out)
         if not (args.print_plan or args.report_only):
@@ -62,10 +63,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{row.name} [{state}]: {cmd}")
             return 0
         if args.report_only:
-            for path in report.write(exp, out):
+            for path in report.write(whole, out):
                 print(path)
             return 0
-        return runner.reproduce(exp, out, export_to=args.export_pretrained)
+        return runner.reproduce(exp, out, export_to=args.export_pretrained, report_exp=whole)
     except ConfigError as e:
         print(f"tgrf-reproduce: error: {e}", file=sys.stderr)
         return 2

@@ -156,18 +156,21 @@ def _provenance_commit(row_dir: pathlib.Path) -> str | None:
     return invocations[-1].get("commit")
 
 
-def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, export_to=None) -> int:
+def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, export_to=None,
+              report_exp: Experiment | None = None) -> int:
     """Run every unfinished row of `exp` into `out`, rewriting the report after each row; returns an exit code.
-    With `export_to`, each finished row's best policies are exported there (`export_best`)."""
+    With `export_to`, each finished row's best policies are exported there (`export_best`). The report covers
+    `report_exp` (default `exp`): the whole experiment when `exp` is a selection of its rows, so rows finished
+    by earlier selections stay in the table."""
     from tgrf_jax.train.lock import exclusive
 
     out = pathlib.Path(out)
     check_out_dir(exp, out)
     with exclusive(out):
-        return _reproduce(exp, out, log, export_to)
+        return _reproduce(exp, out, log, export_to, report_exp or exp)
 
 
-def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to) -> int:
+def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: Experiment) -> int:
     _record(exp, out)
     log_file = open(out / LOG_FILE, "a", buffering=1)
 
@@ -181,7 +184,7 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to) -> int:
         say(f"[{exp.name}] {exp.title}: {len(exp.rows)} rows x {len(exp.column_values)} "
             f"{exp.column_axis} values x {exp.seeds} seeds; {len(exp.rows) - len(todo)} rows already done; "
             f"results in {out}")
-        report.write(exp, out)
+        report.write(report_exp, out)
         t0 = time.perf_counter()
         for i, row in enumerate(todo):
             done = len(exp.rows) - len(todo) + i
@@ -195,7 +198,7 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to) -> int:
             if code != 0:
                 say(f"[{exp.name}] row {row.name} stopped (exit code {code}); rerun the same command to resume")
                 return 130 if code in (130, -2) else code
-            paths = report.write(exp, out)
+            paths = report.write(report_exp, out)
             say(f"[{exp.name}] row {row.name} done; report: {', '.join(str(p) for p in paths)}")
         if export_to is not None:
             for row in exp.rows:
