@@ -5,6 +5,7 @@ speed belongs to benchmarks, and a busy machine must not fail a correct notebook
 import csv
 import os
 import pathlib
+import queue
 import sys
 import time
 
@@ -42,6 +43,29 @@ def _outputs(nb, kind):
                 yield out.data[kind]
 
 
+def _poll_in_short_steps(channel, step_s=0.5):
+    """Make a kernel client channel wait for its next message in short polls instead of one long one.
+
+    The asyncio zmq poll behind jupyter_client's ``get_msg`` can miss the wake-up for a message that is already
+    queued (nbclient#312): seen here on the cell that opens ipywidgets comms, which then sat until the cell
+    timeout (180 s) with its reply waiting in the socket. Each short poll checks the socket again on return, so a
+    missed wake-up costs at most one step, and the overall timeout the caller asked for is kept.
+    """
+    wait = channel.get_msg
+
+    async def get_msg(timeout=None):
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            left = step_s if deadline is None else max(0.0, min(step_s, deadline - time.monotonic()))
+            try:
+                return await wait(timeout=left)
+            except queue.Empty:
+                if deadline is not None and time.monotonic() >= deadline:
+                    raise
+
+    channel.get_msg = get_msg
+
+
 def _execute(path, tmp_path):
     nb = nbformat.read(path, as_version=4)
     env = dict(os.environ)
@@ -50,7 +74,12 @@ def _execute(path, tmp_path):
     for var in ("TGRF_NB_STEPS", "TGRF_NB_EPISODES"):
         env.pop(var, None)
     env["TGRF_NB_RUN_DIR"] = str(tmp_path)
-    client = NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
+
+    def short_polls(**_):
+        _poll_in_short_steps(client.kc.shell_channel)
+        _poll_in_short_steps(client.kc.iopub_channel)
+
+    client = NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3", on_notebook_start=short_polls,
                             resources={"metadata": {"path": str(NOTEBOOK_DIR)}})
     start = time.perf_counter()
     client.execute(env=env)
