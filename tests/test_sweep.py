@@ -163,6 +163,19 @@ def test_run_in_sweep_matches_tgrf_train(sweep, tmp_path):
     # (evaluation only up to rounding: tgrf-train's evaluate bakes the parameters into the program as constants)
     _assert_evals(tmp_path / "alone" / "eval.json", single_dir / "eval.json", exact=False)
 
+    # The sequential layout trains each run through tgrf-train's own program: bit-identical, evaluation included,
+    # also across an interruption (its checkpoints hold the batched layout's stacked state).
+    seq = SweepSpec.create(TINY, ["reward.h_disc=1.0,2.5", "reward.sigma_disc=0.2"], "1,", ["run.eval_episodes=8"],
+                           layout="sequential")
+    run_sweep(seq, tmp_path / "seq", log=lambda m: None, stop_after_updates=6)
+    assert load_yaml(tmp_path / "seq" / "sweep.yaml")["layout"] == "sequential"
+    assert main(["--resume", str(tmp_path / "seq")]) == 0
+    seq_dir = tmp_path / "seq" / "runs" / "p001_h_disc=2.5_sigma_disc=0.2_seed=1"
+    _, in_seq = restore_run(seq_dir)
+    _assert_states(alone.state, in_seq, exact=True)
+    _assert_curves(tmp_path / "alone" / "metrics.csv", seq_dir / "metrics.csv", exact=True)
+    _assert_evals(tmp_path / "alone" / "eval.json", seq_dir / "eval.json", exact=True)
+
 
 def test_resume_after_interruption_matches_uninterrupted(sweep, tmp_path):
     out = tmp_path / "resumed"
@@ -369,3 +382,22 @@ def test_summary_and_plots_from_results(tmp_path):
     paths = plot_sweep(tmp_path, spec, summary)
     assert {p.name for p in paths} == {"learning_curves.png", "heatmap.png"}
     assert all(p.stat().st_size > 10_000 for p in paths)
+
+
+def test_layout_is_recorded_and_checked():
+    spec = SweepSpec.create(TINY, [], "1", [], layout="sequential")
+    data = spec.to_dict()
+    assert data["layout"] == "sequential" and SweepSpec.from_dict(data).layout == "sequential"
+    del data["layout"]  # a sweep.yaml written before layouts existed ran batched
+    assert SweepSpec.from_dict(data).layout == "batched"
+    with pytest.raises(ConfigError, match="layout = 'vmap': allowed batched, sequential"):
+        SweepSpec.from_dict(dict(data, layout="vmap"))
+    with pytest.raises(ConfigError, match="--layout = 'fast': allowed batched, sequential"):
+        SweepSpec.create(TINY, layout="fast")
+
+
+def test_sequential_layout_is_refused_for_multi_host_before_anything_is_written(tmp_path, capsys):
+    out = tmp_path / "never"
+    assert main([TINY, "--layout", "sequential", "--distributed", "--out", str(out)]) != 0
+    assert "needs the batched layout" in capsys.readouterr().err
+    assert not out.exists()

@@ -124,6 +124,17 @@ class RunSpec:
     config: TrainConfig
 
 
+# batched: each device trains its share of the runs as one vmapped program (the runs of a device step together);
+# sequential: the runs take turns, each through tgrf-train's own program with its env shards on the devices.
+LAYOUTS = ("batched", "sequential")
+
+
+def check_layout(layout, name: str = "--layout") -> str:
+    if layout not in LAYOUTS:
+        raise ConfigError(f"{name} = {layout!r}: allowed {', '.join(LAYOUTS)}")
+    return layout
+
+
 @dataclasses.dataclass(frozen=True)
 class SweepSpec:
     """A base config (resolved dict), grid axes and seeds. Runs are ordered point-major: (point, seed)."""
@@ -131,14 +142,16 @@ class SweepSpec:
     base: dict
     axes: tuple[GridAxis, ...]
     seeds: tuple[int, ...]
+    layout: str = "batched"  # how the runs share the devices: one of LAYOUTS
 
     @classmethod
     def create(cls, config_path=None, grid: list[str] = (), seeds: str | int | None = None,
-               overrides: list[str] = ()) -> "SweepSpec":
+               overrides: list[str] = (), layout: str = "batched") -> "SweepSpec":
+        check_layout(layout)
         data = load_yaml(config_path) if config_path else {}
         base = TrainConfig.from_dict(apply_overrides(data, list(overrides))).to_dict()
         axes = parse_grid(list(grid), base)
-        spec = cls(base, axes, parse_seeds(seeds, base["run"]["seed"]))
+        spec = cls(base, axes, parse_seeds(seeds, base["run"]["seed"]), layout)
         spec.runs()  # validates every run config (combinations included)
         return spec
 
@@ -176,6 +189,7 @@ class SweepSpec:
         return {
             "grid": {a.name: list(a.values) for a in self.axes},
             "seeds": list(self.seeds),
+            "layout": self.layout,
             "runs": [{"name": r.name, "point": r.point, "seed": r.seed, "values": dict(r.values)} for r in self.runs()],
             "base": self.base,
         }
@@ -185,13 +199,16 @@ class SweepSpec:
         try:
             base = TrainConfig.from_dict(data["base"]).to_dict()
             axes = tuple(GridAxis(k, tuple(v)) for k, v in (data.get("grid") or {}).items())
-            return cls(base, axes, tuple(int(s) for s in data["seeds"]))
+            # sweeps written before the layout was recorded ran batched
+            layout = check_layout(data.get("layout", "batched"), f"{SWEEP_FILE}: layout")
+            return cls(base, axes, tuple(int(s) for s in data["seeds"]), layout)
         except (KeyError, TypeError) as e:
             raise ConfigError(f"{SWEEP_FILE} is malformed: {e!r}") from None
 
     def describe(self) -> str:
         runs = self.runs()
-        lines = [f"{len(self.points())} grid point(s) x {len(self.seeds)} seed(s) = {len(runs)} runs"]
+        lines = [f"{len(self.points())} grid point(s) x {len(self.seeds)} seed(s) = {len(runs)} runs, "
+                 f"{self.layout} layout"]
         for a in self.axes:
             lines.append(f"  {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")
         lines.append(f"  seeds: {', '.join(map(str, self.seeds))}")

@@ -211,30 +211,50 @@ def evaluate_runs(program: SweepProgram, runs, params, g_pad: int, episodes: int
     return out
 
 
+def _run_inputs(runs):
+    """(hparams, keys) of every run, stacked: what tgrf-train derives from each run's config."""
+    import jax
+
+    from tgrf_jax.train.ppo import check_hparams, hparams_from_config
+
+    hps = [hparams_from_config(r.config) for r in runs]
+    shapes = [jax.tree_util.tree_map(lambda x: (np.shape(x), np.asarray(x).dtype), h) for h in hps]
+    struct0 = jax.tree_util.tree_structure(hps[0])
+    for r, h, s in zip(runs, hps, shapes):
+        if jax.tree_util.tree_structure(h) != struct0 or s != shapes[0]:
+            raise ConfigError(f"run {r.name}: its hyper-parameters have another structure than run "
+                              f"{runs[0].name}'s; it cannot share the compiled program")
+    hparams = _stack(hps)
+    check_hparams(hparams)  # each run's concrete values, as tgrf-train's init checks them
+    return hparams, _stack([jax.random.PRNGKey(r.config.run.seed) for r in runs])
+
+
+def _restore_stacked(checkpointer, trainer, keys, hparams, step: int):
+    """A sweep checkpoint (every run's state along a leading run axis) on the host, and the update it holds."""
+    import jax
+
+    from tgrf_jax.train.checkpoint import CheckpointError
+
+    template = jax.eval_shape(jax.vmap(trainer.init), keys, hparams)
+    host_state = _host(checkpointer.restore(template, step))
+    updates = sorted(set(np.asarray(host_state.update).tolist()))
+    if len(updates) != 1:
+        raise CheckpointError(f"checkpoint {str(checkpointer.directory / str(step))!r} holds runs at "
+                              f"different updates {updates}")
+    return host_state, updates[0]
+
+
 class SweepBatch:
     """The runner's `Program` for the runs of one sweep: per run the traced hyper-parameters and key that
     tgrf-train derives from that run's config, stacked, padded and placed on the program's mesh."""
 
     def __init__(self, runs, devices):
-        import jax
-
-        from tgrf_jax.train.ppo import check_hparams, hparams_from_config
-
         self.runs = runs
         configs = [r.config for r in runs]
         self.num_runs = G = len(runs)
         self.num_devices = D = len(devices)
         self.g_pad = -(-G // D) * D
-        hps = [hparams_from_config(c) for c in configs]
-        shapes = [jax.tree_util.tree_map(lambda x: (np.shape(x), np.asarray(x).dtype), h) for h in hps]
-        struct0 = jax.tree_util.tree_structure(hps[0])
-        for r, h, s in zip(runs, hps, shapes):
-            if jax.tree_util.tree_structure(h) != struct0 or s != shapes[0]:
-                raise ConfigError(f"run {r.name}: its hyper-parameters have another structure than run "
-                                  f"{runs[0].name}'s; it cannot share the compiled program")
-        self.hparams = _stack(hps)
-        check_hparams(self.hparams)  # each run's concrete values, as tgrf-train's init checks them
-        self.keys = _stack([jax.random.PRNGKey(c.run.seed) for c in configs])
+        self.hparams, self.keys = _run_inputs(runs)
         self.program = get_program(configs[0], devices)
         self.config = configs[0]
         self.num_updates = self.program.trainer.num_updates
@@ -248,17 +268,8 @@ class SweepBatch:
         return self._placed(_stack([_host(init(self.keys[i], _take(self.hparams, i))) for i in range(self.num_runs)]))
 
     def restore(self, checkpointer, step: int):
-        import jax
-
-        from tgrf_jax.train.checkpoint import CheckpointError
-
-        template = jax.eval_shape(jax.vmap(self.program.trainer.init), self.keys, self.hparams)
-        host_state = _host(checkpointer.restore(template, step))
-        updates = sorted(set(np.asarray(host_state.update).tolist()))
-        if len(updates) != 1:
-            raise CheckpointError(f"checkpoint {str(checkpointer.directory / str(step))!r} holds runs at "
-                                  f"different updates {updates}")
-        return self._placed(host_state), updates[0]
+        host_state, update = _restore_stacked(checkpointer, self.program.trainer, self.keys, self.hparams, step)
+        return self._placed(host_state), update
 
     def compiled_chunk(self, state, n: int):
         return self.program.compiled_chunk(state, n)
@@ -283,3 +294,62 @@ class SweepBatch:
                 f"{self.g_pad // self.num_devices} run(s) per device | {self.program.trainer.env} | "
                 f"{c.network.name}/{c.network.size} ({n_params:,} params) | {p.num_envs} envs x {p.num_steps} "
                 f"steps, {self.num_updates} updates = {self.num_updates * p.batch_size:,} env steps per run")
+
+
+class SequentialBatch:
+    """The runner's `Program` for a sweep whose runs take turns: each chunk trains every run in turn through
+    tgrf-train's own compiled chunk, with that run's env shards on the devices as tgrf-train places them. One
+    program for all runs (their hyper-parameters are traced), and every run is bit-identical to its tgrf-train
+    run. On CPUs it trains large configs faster than the batched layout (docs/benchmarks.md); its checkpoints
+    hold the batched layout's stacked state. Single-host only."""
+
+    def __init__(self, runs, devices):
+        import jax
+
+        from tgrf_jax.train.loop import SoloProgram
+
+        if jax.process_count() > 1:
+            raise ConfigError("the sequential layout runs on one host; use the batched layout for multi-host sweeps")
+        self.runs = runs
+        self.num_runs = len(runs)
+        self.hparams, self.keys = _run_inputs(runs)
+        self.config = runs[0].config
+        shards = self.config.ppo.num_shards
+        # tgrf-train's placement: one device per env shard where the sweep has enough, else the shards vmapped
+        on_devices = len(devices) >= shards > 1
+        self.solo = SoloProgram(self.config, list(devices)[:shards] if on_devices else None)
+        self.num_devices = shards if on_devices else 1
+        self.train = self.solo.train
+        self.num_updates = self.solo.num_updates
+        self.batch_size = self.solo.batch_size
+
+    def init(self):
+        return [self.train.init(self.keys[i], _take(self.hparams, i)) for i in range(self.num_runs)]
+
+    def restore(self, checkpointer, step: int):
+        host_state, update = _restore_stacked(checkpointer, self.train.trainer, self.keys, self.hparams, step)
+        return [self.train.place(_take(host_state, i)) for i in range(self.num_runs)], update
+
+    def compiled_chunk(self, states, n: int):
+        fn, compile_s = self.solo.compiled_chunk(states[0], n)
+
+        def each(states):
+            out = [fn(s) for s in states]
+            return [o[0] for o in out], [o[1] for o in out]
+
+        return each, compile_s
+
+    def run_metrics(self, metrics) -> list[dict]:
+        return [self.solo.run_metrics(m)[0] for m in metrics]
+
+    def host_state(self, states):
+        return _stack([_host(s) for s in states])
+
+    def evaluate(self, states, episodes: int, seed: int) -> list[dict]:
+        from tgrf_jax.train.loop import evaluate_state
+
+        net = self.train.trainer.net  # one compiled evaluation for every run
+        return [evaluate_state(r.config, s, episodes, seed, net=net) for r, s in zip(self.runs, states)]
+
+    def describe(self, states) -> str:
+        return f"{self.num_runs} runs in turn, each as tgrf-train trains it | {self.solo.describe(states[0])}"

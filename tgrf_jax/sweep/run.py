@@ -28,7 +28,7 @@ import yaml
 
 from tgrf_jax.config import ConfigError, TrainConfig
 from tgrf_jax.sweep.grid import SWEEP_FILE, SweepSpec, _fmt_value, load_sweep
-from tgrf_jax.sweep.program import SweepBatch, barrier
+from tgrf_jax.sweep.program import SequentialBatch, SweepBatch, barrier
 from tgrf_jax.sweep.report import RUNS_DIR, format_summary_markdown, plot_sweep, write_results
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer, tree_digest
 from tgrf_jax.train.curves import CURVE_FIELDS, EVAL_CURVE_CSV, PeriodicEvaluation
@@ -145,7 +145,7 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after
     barrier("tgrf_sweep_written")
 
     say = LogFile(sweep_dir / LOG_FILE, log, enabled=main)
-    program = SweepBatch(runs, devices)
+    program = (SequentialBatch if spec.layout == "sequential" else SweepBatch)(runs, devices)
     run_cfg = runs[0].config.run
     ckpt = Checkpointer(ckpt_dir, keep=run_cfg.keep_checkpoints, create=True)  # a run stopped before its first checkpoint has none yet
     say(f"sweep of {len(runs)} runs ({len(spec.points())} grid points x {len(spec.seeds)} seeds)")
