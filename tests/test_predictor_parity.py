@@ -38,9 +38,9 @@ def test_state_dict_names_with_or_without_prefix(ref, params):
     for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(bare)):
         np.testing.assert_array_equal(a, b)
     # 67,269 reference parameters; the two LSTM bias vectors (256 each) are summed into one here, and the
-    # constant-velocity prior (one scalar) is off.
-    assert sum(x.size for x in jax.tree_util.tree_leaves(params)) == 67269 - 256 + 1
-    assert float(params["cv_prior"]) == 0.0
+    # constant-velocity prior (one scalar, with its 2 x 64 raw-displacement map) is off.
+    assert sum(x.size for x in jax.tree_util.tree_leaves(params)) == 67269 - 256 + 1 + 128
+    assert float(params["cv_prior"]) == 0.0 and not np.any(params["speed"]["kernel"])
 
 
 def test_bad_state_dict_names_the_key(ref):

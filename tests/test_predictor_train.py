@@ -12,7 +12,7 @@ from tgrf_jax import predictor
 from tgrf_jax.predictor import data as data_lib
 from tgrf_jax.predictor import train as train_lib
 from tgrf_jax.cli import predictor as cli
-from tgrf_jax.predictor.model import StepGaussians
+from tgrf_jax.predictor.model import StepGaussians, step_gaussians
 
 
 def synthetic(b=5, t=40, n=3, seed=0):
@@ -77,6 +77,50 @@ def test_nll_is_the_bivariate_gaussian_density():
     assert bool(mask.all())
 
 
+def test_ade_mean_loss_fits_means_by_distance_and_spreads_by_nll():
+    data = data_lib.device_arrays(synthetic()["arrays"])
+    batch = jax.vmap(lambda es: data_lib.make_window(data, es))(jnp.array([[0, 3], [1, 20], [2, 5]]))
+    rng = np.random.default_rng(0)
+    mu = jnp.asarray(rng.normal(size=(3, 3, 5, 2)) * 0.1, jnp.float32)
+    g = lambda sigma: StepGaussians(mu=mu, sigma=jnp.full((3, 3, 5, 2), sigma), corr=jnp.zeros((3, 3, 5)),  # noqa: E731
+                                    out_mask=jnp.ones((3, 3), bool))
+    mean_grad = lambda sigma, mean_loss: np.asarray(  # noqa: E731
+        jax.grad(lambda m: train_lib.gaussians_loss(g(sigma).replace(mu=m), batch, mean_loss))(mu))
+    # under "ade" the pull on the means does not depend on the predicted spread; under the NLL it does
+    np.testing.assert_allclose(mean_grad(0.05, "ade"), mean_grad(1.0, "ade"), rtol=1e-6)
+    assert np.abs(mean_grad(0.05, "ade")).max() > 0
+    assert not np.allclose(mean_grad(0.05, "nll"), mean_grad(1.0, "nll"), rtol=1e-2)
+    # and it is the mean Euclidean error of the predicted positions over the valid steps
+    nll_only = train_lib.gaussians_loss(g(1.0).replace(mu=jax.lax.stop_gradient(mu)), batch, "nll")
+    means = batch.positions[:, :, -1:] + np.cumsum(np.asarray(mu), axis=2)
+    mask = np.asarray(batch.target_valid)
+    ade = np.linalg.norm(means - np.asarray(batch.target), axis=-1)[mask].mean()
+    np.testing.assert_allclose(float(train_lib.gaussians_loss(g(1.0), batch, "ade")), float(nll_only) + ade,
+                               rtol=1e-5)
+    with pytest.raises(ValueError, match="mean_loss = 'mse'.*ade, nll"):
+        train_lib.TrainConfig(mean_loss="mse")
+
+
+def test_ade_loss_shapes_the_network_by_position_error_only():
+    """Under "ade" the spreads' NLL trains only the head's spread rows; the forward pass is unchanged."""
+    data = data_lib.device_arrays(synthetic()["arrays"])
+    batch = jax.vmap(lambda es: data_lib.make_window(data, es))(jnp.array([[0, 3], [1, 20], [2, 5]]))
+    params = train_lib.init_state(train_lib.TrainConfig(cv_prior=True)).params
+    params = {**params, "head": jax.tree_util.tree_map(lambda x: x + 0.01, params["head"])}  # off the prior
+    model = lambda p, detach: jax.vmap(  # noqa: E731
+        lambda b: step_gaussians(p, b.positions, b.visible, detach_spreads=detach))(batch)
+    for a, b in zip(jax.tree_util.tree_leaves(model(params, True)), jax.tree_util.tree_leaves(model(params, False))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    spread_loss = lambda p, detach: train_lib.gaussians_loss(  # noqa: E731
+        model(p, detach).replace(mu=jnp.zeros((3, 3, 5, 2))), batch, "nll")
+    detached, attached = (jax.grad(spread_loss)(params, d) for d in (True, False))
+    assert all(not np.any(np.asarray(x)) for x in jax.tree_util.tree_leaves(detached["lstm"]))
+    assert any(np.any(np.asarray(x)) for x in jax.tree_util.tree_leaves(attached["lstm"]))
+    assert np.any(np.asarray(detached["head"]["kernel"][:, 2:])) and not np.any(detached["head"]["kernel"][:, :2])
+    with pytest.raises(ValueError, match="dropout = 1.0 must be in"):
+        train_lib.TrainConfig(dropout=1.0)
+
+
 def test_constant_velocity_is_exact_on_straight_walkers():
     dataset = synthetic()
     data = data_lib.device_arrays(dataset["arrays"])
@@ -95,7 +139,7 @@ def test_constant_velocity_is_exact_on_straight_walkers():
 def test_training_resumes_bit_identically(tmp_path):
     dataset = synthetic()
     config = train_lib.TrainConfig(updates=4, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2,
-                                   eval_windows=8)
+                                   eval_windows=8, dropout=0.1)  # dropout: its keys must resume too
     full, meta = train_lib.train(config, dataset, tmp_path / "full", log=lambda s: None)
     assert meta["eval"]["humans"] > 0
     # stop after 2 updates, then resume the same run to 4 (the update count may grow between invocations)
@@ -141,6 +185,8 @@ def test_collector_is_deterministic_and_logs_only_what_the_robot_sees():
 @pytest.mark.parametrize("argv, message", [
     (["train", "--dataset", "nowhere.npz", "--run-dir", "r"], "nowhere.npz.*does not exist"),
     (["train", "--dataset", "d.npz", "--run-dir", "r", "--updates", "0"], "updates = 0 must be an integer >= 1"),
+    (["train", "--dataset", "d.npz", "--run-dir", "r", "--mean-loss", "mse"], "--mean-loss: invalid choice"),
+    (["train", "--dataset", "d.npz", "--run-dir", "r", "--dropout", "-0.1"], "dropout = -0.1 must be in"),
     (["collect", "--envs", "2", "--out", "x.npz"], "num_envs = 2 must be an integer >= 5"),
     (["eval", "--dataset", "d.npz", "--params", "nothing.npz"], "nothing.npz.*do not exist"),
 ])

@@ -66,6 +66,11 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--decay-rate", type=float, default=tdef.decay_rate)
     t.add_argument("--cv-prior", action=argparse.BooleanOptionalAction, default=tdef.cv_prior,
                    help="predict corrections to constant velocity (--no-cv-prior: the released model exactly)")
+    t.add_argument("--mean-loss", choices=train_lib.MEAN_LOSSES, default=tdef.mean_loss,
+                   help="what fits the predicted means: ade (their displacement error; the NLL fits only the "
+                        "spreads) or nll (GST.md's loss for everything)")
+    t.add_argument("--dropout", type=float, default=tdef.dropout,
+                   help="training-time dropout rate (GST.md: 0.1)")
     t.add_argument("--export", help="also write the trained parameters here (.npz + .json)")
     t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints (the run dir must be new)")
 

@@ -15,9 +15,11 @@ absolute positions the way the wrapper does.
 
 One addition, off for the released weights: the parameter `cv_prior` (a frozen scalar, 0 or 1) adds the last
 observed displacement to every predicted mean displacement, so the network predicts a correction to constant
-velocity. The released architecture reads speeds through a LayerNorm of a 2-to-64 embedding, which makes
-"keep walking as before" hard to represent to centimetre precision; on the simulator's crowds even the released
-weights predict worse than constant velocity. With `cv_prior` = 0 the model is exactly the released one.
+velocity, and feeds each raw displacement to the LSTM beside its normalised embedding (a linear map, `speed`).
+The released architecture reads displacements only through a LayerNorm of a 2-to-64 embedding, which keeps their
+direction but all but erases their length: it cannot tell a fast walker from a slow one, nor "keep walking as
+before" to centimetre precision, and on the simulator's crowds even the released weights predict worse than
+constant velocity. With `cv_prior` = 0 the model is exactly the released one.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ NUM_HEADS = 8
 D_FF = 128
 DROPOUT = 0.1
 LN_EPS = 1e-5
+SPEED_SCALE = 4.0  # per-step displacement (dt = 0.25 s) -> velocity in m/s, O(1) like the other inputs
 
 
 @struct.dataclass
@@ -64,9 +67,11 @@ class Prediction:
 class SpatialBlock(nn.Module):
     """Node embedding + one encoder layer, applied to a (..., N, 2) batch of displacements with mask (..., N)."""
 
+    dropout: float = DROPOUT
+
     @nn.compact
     def __call__(self, v, mask, deterministic: bool = True):
-        drop = lambda x: nn.Dropout(DROPOUT)(x, deterministic=deterministic)  # noqa: E731
+        drop = lambda x: nn.Dropout(self.dropout)(x, deterministic=deterministic)  # noqa: E731
         x = nn.Dense(D_MODEL, name="embed")(v)
         x = nn.LayerNorm(epsilon=LN_EPS, name="norm_attn")(x) * mask[..., None]
         qkv = nn.Dense(3 * D_MODEL, name="in_proj")(x)
@@ -103,13 +108,20 @@ def displacement_masks(visible):
 
 
 class GST(nn.Module):
-    """positions (N, 5, 2), visible (N, 5) -> StepGaussians over the next PRED_LEN displacements."""
+    """positions (N, 5, 2), visible (N, 5) -> StepGaussians over the next PRED_LEN displacements.
+
+    `dropout` is the training-time rate; `detach_spreads` stops the gradient of the spreads and correlations
+    at the LSTM state, so a loss on them trains only their rows of the output head (forward values unchanged)."""
+
+    dropout: float = DROPOUT
+    detach_spreads: bool = False
 
     @nn.compact
     def __call__(self, positions, visible, deterministic: bool = True):
-        spatial = SpatialBlock(name="spatial")
+        spatial = SpatialBlock(dropout=self.dropout, name="spatial")
         lstm = LSTMStep(name="lstm")
         head = nn.Dense(5, name="head")
+        speed = nn.Dense(D_MODEL, use_bias=False, name="speed")
         # Frozen: the optimiser sees a zero gradient and leaves it where initialisation or import put it.
         prior = jax.lax.stop_gradient(self.param("cv_prior", nn.initializers.zeros, ()))
         m_rel, mf = displacement_masks(visible)
@@ -122,18 +134,22 @@ class GST(nn.Module):
         n = positions.shape[0]
         h = c = jnp.zeros((n, D_MODEL), positions.dtype)
         for t in range(OBS_LEN):
-            h, c = lstm(xs[t] * m_rel[:, t, None], h, c)
+            h, c = lstm(xs[t] * m_rel[:, t, None] + prior * speed(v[:, t] * SPEED_SCALE), h, c)
         h, c = h * mf[:, None], c * mf[:, None]
 
         raws, mus = [], []
         for step in range(PRED_LEN):
             if step:
-                x = spatial(mus[-1] * mf[:, None], mf, deterministic) * mf[:, None]
+                x = spatial(mus[-1] * mf[:, None], mf, deterministic) + prior * speed(mus[-1] * SPEED_SCALE)
+                x = x * mf[:, None]
                 h_new, c_new = lstm(x, h, c)
                 keep = mf[:, None] > 0
                 h, c = jnp.where(keep, h_new, h), jnp.where(keep, c_new, c)
-            raws.append(head(h))
-            mus.append(raws[-1][:, :2] + base)
+            raw = head(h)
+            if self.detach_spreads:
+                raw = jnp.concatenate([raw[:, :2], head(jax.lax.stop_gradient(h))[:, 2:]], axis=-1)
+            raws.append(raw)
+            mus.append(raw[:, :2] + base)
         raw = jnp.stack(raws, axis=1)  # (N, K, 5)
         return StepGaussians(mu=jnp.stack(mus, axis=1), sigma=jnp.exp(raw[..., 2:4]), corr=jnp.tanh(raw[..., 4]),
                              out_mask=mf > 0)
@@ -155,12 +171,14 @@ def init_params(key, num_humans: int = 20, cv_prior: bool = False):
     return params
 
 
-def step_gaussians(params, positions, visible, *, dropout_key=None) -> StepGaussians:
-    """Per-step Gaussians; dropout (p = 0.1, as in training) is on only when `dropout_key` is given."""
+def step_gaussians(params, positions, visible, *, dropout_key=None, dropout: float = DROPOUT,
+                   detach_spreads: bool = False) -> StepGaussians:
+    """Per-step Gaussians; dropout (rate `dropout`) is on only when `dropout_key` is given."""
     chex.assert_rank(positions, 3)
     chex.assert_shape(visible, positions.shape[:2])
     rngs = None if dropout_key is None else {"dropout": dropout_key}
-    return MODEL.apply({"params": params}, positions, visible, dropout_key is None, rngs=rngs)
+    model = GST(dropout=dropout, detach_spreads=detach_spreads)
+    return model.apply({"params": params}, positions, visible, dropout_key is None, rngs=rngs)
 
 
 def accumulate(g: StepGaussians, last_pos) -> Prediction:

@@ -67,7 +67,8 @@ def from_torch_state_dict(arrays: Mapping[str, np.ndarray]):
     }
     head = {"kernel": get("hidden2pos.weight", template["head"]["kernel"][::-1]).T,
             "bias": get("hidden2pos.bias", template["head"]["bias"])}
-    params = {"spatial": spatial, "lstm": lstm, "head": head, "cv_prior": np.zeros((), np.float32)}
+    speed = {"kernel": np.zeros(template["speed"]["kernel"], np.float32)}  # not in the released model
+    params = {"spatial": spatial, "lstm": lstm, "head": head, "speed": speed, "cv_prior": np.zeros((), np.float32)}
     return jax.tree_util.tree_map(lambda x: np.array(x, np.float32, order="C"), params)
 
 
