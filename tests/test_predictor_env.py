@@ -8,6 +8,7 @@ import pytest
 from helpers import hand_state, make_env
 from tgrf_jax import predictor
 from tgrf_jax.config import ConfigError, EnvConfig
+from tgrf_jax.env import sensing
 from tgrf_jax.predictor import history as gst_history
 
 
@@ -47,6 +48,13 @@ def test_history_is_reset_at_every_episode_start(env):
     step, step_env = jax.jit(env.step), jax.jit(env.step_env)
     obs, state = jax.jit(env.reset)(jax.random.key(0), params)
     assert not np.asarray(state.history.visible[:, :4]).any()
+    # reset skips the model: its observation is the one the model's predictions on the fresh history give
+    model = gst_history.predictions(params.predictor, state.history)
+    assert not np.asarray(model.out_mask).any()
+    visible = sensing.visible_mask(state, params)
+    for a, b in zip(jax.tree_util.tree_leaves(obs),
+                    jax.tree_util.tree_leaves(sensing.observe(state, params, model.means, visible))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     ended = 0
     for i in range(10):  # time_limit 1 s = 4 steps: two episode ends
         obs, new_state, reward, term, trunc, info = step(jax.random.key(i + 1), state, jnp.zeros(2), params)

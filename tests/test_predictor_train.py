@@ -134,6 +134,23 @@ def test_constant_velocity_is_exact_on_straight_walkers():
     # with the constant-velocity prior, the untrained model (zero head) is constant velocity
     prior = evaluate(jax.jit(lambda: train_lib.init_state(train_lib.TrainConfig(cv_prior=True)).params)(), val)
     assert prior["ade"] < 1e-5 and prior["humans"] == metrics["humans"]
+    assert metrics["ade_change"] > 1 and metrics["ade_change_ci95"][0] <= metrics["ade_change"]
+    assert metrics["episodes"] == len(np.unique(val[:, 0]))
+
+
+def test_relative_change_resamples_whole_episodes():
+    episode = np.repeat(np.arange(10), 30)
+    cv = np.random.default_rng(1).uniform(0.5, 1.5, len(episode))
+    # every episode 10% better: the interval has no width, whatever the windows' spread
+    change, ci = train_lib.relative_change(0.9 * cv, cv, episode)
+    assert change == pytest.approx(-0.1) and ci == pytest.approx([-0.1, -0.1])
+    # half the episodes 30% better, half equal: the ratio of sums, inside an interval as wide as the episodes'
+    # disagreement (windows of one episode do not count as independent evidence)
+    model = np.where(episode < 5, 0.7, 1.0) * cv
+    change, (lo, hi) = train_lib.relative_change(model, cv, episode)
+    assert change == pytest.approx(model.sum() / cv.sum() - 1)
+    assert lo < change < hi and hi - lo > 0.1 and hi < 0
+    assert train_lib.relative_change(model, cv, episode) == (change, [lo, hi])  # fixed seed
 
 
 def test_training_resumes_bit_identically(tmp_path):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from tgrf_jax.predictor.model import OBS_LEN, Prediction, predict
+from tgrf_jax.predictor.model import OBS_LEN, PRED_LEN, Prediction, predict
 
 FILLER_OFFSET = 15.0  # unseen frames hold robot position + 15 m per axis, as the reference env fills them
 
@@ -49,3 +49,10 @@ def push(history: History, robot_pos, human_pos, visible) -> History:
 def predictions(params, history: History) -> Prediction:
     """Predicted world positions (N, 5, 2) and `out_mask`; humans without a prediction hold their position."""
     return predict(params, history.positions, history.visible)
+
+
+def fresh_predictions(history: History) -> jnp.ndarray:
+    """What `predictions(...).means` returns for a `fresh` history, without running the model: the model
+    predicts only humans seen in the last two frames, so every human holds its current frame's position."""
+    n = history.positions.shape[0]
+    return jnp.broadcast_to(history.positions[:, -1:], (n, PRED_LEN, 2))
