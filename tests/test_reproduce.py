@@ -5,6 +5,7 @@ import dataclasses
 import json
 import math
 import pathlib
+import types
 
 import pytest
 import yaml
@@ -120,6 +121,42 @@ def test_row_states(tmp_path):
     assert runner.row_state(row) == "resumable"
     (row / "evals.csv").write_text("run\n")
     assert runner.row_state(row) == "done"
+
+
+def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
+    class Interrupted:  # a sweep child whose output stops with Ctrl-C
+        def __init__(self, cmd, **kwargs):
+            self.cmd = cmd
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        @property
+        def stdout(self):
+            yield "update 5\n"
+            raise KeyboardInterrupt
+
+        def wait(self):
+            return -2
+
+    real = runner.subprocess  # the commit lookup still runs git
+    monkeypatch.setattr(runner, "subprocess", types.SimpleNamespace(
+        Popen=Interrupted, PIPE=real.PIPE, STDOUT=real.STDOUT, run=real.run, SubprocessError=real.SubprocessError))
+    exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
+    row_dir = tmp_path / "out" / "mlp"
+    (row_dir / "checkpoints" / "50").mkdir(parents=True)
+    (row_dir / "sweep.yaml").write_text("{}")
+    lines = []
+    for _ in range(2):
+        with pytest.raises(KeyboardInterrupt):
+            runner.run_row(exp, exp.rows[0], row_dir, lines.append)
+    prov = json.loads((row_dir / "provenance.json").read_text())
+    assert [i["exit_code"] for i in prov["invocations"]] == [-2, -2] and prov["wall_s"] > 0
+    assert prov["invocations"][0]["command"].startswith("tgrf-sweep --resume")
+    assert lines == ["  mlp | update 5"] * 2
 
 
 def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):

@@ -110,18 +110,23 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     prov = json.loads(prov_path.read_text()) if prov_path.is_file() else {"wall_s": 0.0, "invocations": []}
     started = time.perf_counter()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as proc:
-        for line in proc.stdout:
-            say(f"  {row.name} | {line.rstrip()}")
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        with proc:
+            for line in proc.stdout:
+                say(f"  {row.name} | {line.rstrip()}")
+    finally:
+        # Also when interrupted (Ctrl-C reaches the sweep too, which checkpoints and exits): a row trained over
+        # several invocations keeps the wall time and commit of each.
         code = proc.wait()
-    if row_dir.is_dir():
-        prov["wall_s"] += time.perf_counter() - started
-        prov["invocations"].append({
-            "commit": source_commit(), "machine": machine(), "exit_code": code,
-            "finished": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-            "command": " ".join(["tgrf-sweep"] + cmd[3:]),
-        })
-        _write_atomic(prov_path, json.dumps(prov, indent=2))
+        if row_dir.is_dir():
+            prov["wall_s"] += time.perf_counter() - started
+            prov["invocations"].append({
+                "commit": source_commit(), "machine": machine(), "exit_code": code,
+                "finished": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+                "command": " ".join(["tgrf-sweep"] + cmd[3:]),
+            })
+            _write_atomic(prov_path, json.dumps(prov, indent=2))
     return code
 
 
