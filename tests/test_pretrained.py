@@ -67,3 +67,10 @@ def test_bad_pretrained_policies_are_named(exported, tmp_path, capsys):
     (broken / "params.npz").write_bytes(b"not a zip file")
     with pytest.raises(ConfigError, match="cannot read the policy"):
         pretrained.load(str(broken))
+
+
+@pytest.mark.parametrize("name", pretrained.available())
+def test_shipped_policies_load_with_their_config(name):
+    config, params, meta = pretrained.load(name)  # checks every parameter's shape against the config's network
+    assert meta["row"] in name and meta["reward.scheme"] == config.reward.scheme
+    assert 0.0 < meta["test"]["success_rate"] <= 1.0
