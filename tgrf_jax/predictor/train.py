@@ -37,7 +37,7 @@ class TrainConfig:
     batch_size: int = 64
     lr: float = 1e-3
     decay_rate: float = 0.3
-    decay_every: int = 1500
+    decay_every: int = 4500
     seed: int = 0
     log_every: int = 100
     checkpoint_every: int = 1000
