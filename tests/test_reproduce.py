@@ -47,6 +47,10 @@ def test_paper_tables_hold_every_row_of_the_paper():
     assert t1.row("const_vel").paper["tgrf"]["sr_mean"] == pytest.approx(87.909)
     assert t1.row("truth").paper["crowdnav_pp"]["sr_mean"] == pytest.approx(5.545)
     assert t2.row("no_pred").paper["crowdnav_pp"]["sr"] == pytest.approx(28.0)
+    assert t1.row("gst").paper["tgrf"]["sr_mean"] == pytest.approx(94.091)
+    assert t2.row("gst").paper["crowdnav_pp"]["sr_mean"] == pytest.approx(91.636)
+    assert [r.name for r in t1.rows] == ["dsrnn", "no_pred", "const_vel", "truth", "gst"]
+    assert [r.name for r in t2.rows] == ["dsrnn", "no_pred", "const_vel", "gst"]
     for exp in (t1, t2):
         for row in exp.rows:
             assert set(row.paper) == {"crowdnav_pp", "tgrf"}
