@@ -170,7 +170,8 @@ def main(argv=None):
                              "shorter scans, no breakdown (< 1 minute)")
     parser.add_argument("--out", help="write results as JSON here")
     parser.add_argument("--gst-only", action="store_true",
-                        help="only 20 ORCA humans at batch 1024, const_vel against the learned gst predictor")
+                        help="only 20 ORCA humans at batches 256 and 1024, const_vel against the learned gst "
+                             "predictor")
     parser.add_argument("--devices", type=int, default=len(os.sched_getaffinity(0)),
                         help="CPU devices for the sharded step_batch column (default: one per core; 1: skip it)")
     args = parser.parse_args(argv)
@@ -180,7 +181,7 @@ def main(argv=None):
         mesh = jax.sharding.Mesh(jax.devices()[:args.devices], (ENV_AXIS,))
 
     if args.gst_only:
-        grid = [("orca", 20, 1024, "const_vel"), ("orca", 20, 1024, "gst")]
+        grid = [("orca", 20, b, p) for b in (256, 1024) for p in ("const_vel", "gst")]
         repeats = 2
     elif args.quick:
         grid = [("orca", 20, 128), ("orca", 20, 1024), ("social_force", 20, 1024), ("orca", 20, 1024, "gst")]

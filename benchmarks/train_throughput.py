@@ -1,7 +1,8 @@
 """Training throughput: env-steps/s of whole PPO updates (rollout + GAE + epochs x minibatches), per network
 and number of parallel envs, with a breakdown of where the time goes.
 
-For each (network, size, num_envs) on the paper scenario (20 humans, const_vel predictions, TGRF reward):
+For each (network, size, num_envs) on the paper scenario (20 humans, TGRF reward, const_vel predictions unless
+`--predictor` says otherwise):
   * ``train_sps``: env steps per second of `run_chunk` (U updates of num_envs x num_steps steps, compiled once)
   * ``env_s`` / ``rollout_s`` / ``update_s`` per update: env stepping alone (a scan of the same number of
     auto-reset steps with fixed actions), the rollout (env + policy forward + sampling), and the rest
@@ -14,6 +15,7 @@ For each (network, size, num_envs) on the paper scenario (20 humans, const_vel p
 
     python -m benchmarks.train_throughput --quick --out bench_results/train_quick.json
     python -m benchmarks.train_throughput --out bench_results/train_full.json
+    python -m benchmarks.train_throughput --quick --predictor gst --out bench_results/train_gst.json
 """
 
 from __future__ import annotations
@@ -72,9 +74,9 @@ def matmul_reference_gflops(rows: int = 3840, repeats: int = 20) -> float:
 
 def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,
             breakdown: bool, repeats: int, epochs: int, minibatches: int, microbatch_envs: int,
-            num_shards: int) -> dict:
+            num_shards: int, predictor: str = "const_vel") -> dict:
     cfg = TrainConfig.from_dict({
-        "env": {"num_humans": 20, "human_policy": human_policy, "predictor": "const_vel"},
+        "env": {"num_humans": 20, "human_policy": human_policy, "predictor": predictor},
         "network": {"name": name, "size": size},
         "ppo": {"num_envs": num_envs, "num_steps": num_steps, "num_shards": num_shards,
                 "num_minibatches": minibatches if num_envs % (num_shards * minibatches) == 0 else 1,
@@ -99,6 +101,7 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
     run_s = sorted(runs)[len(runs) // 2]
     out = {
         "network": name, "size": size, "num_envs": num_envs, "num_steps": num_steps, "human_policy": human_policy,
+        "predictor": predictor,
         "num_shards": num_shards, "shard_placement": shards.describe(num_shards, tr.mesh),
         "update_epochs": cfg.ppo.update_epochs, "num_minibatches": cfg.ppo.num_minibatches,
         "microbatches": cfg.ppo.num_microbatches,
@@ -151,6 +154,8 @@ def main(argv=None):
                         help="HH Attn small at the default config's env count, no breakdown (< 1 min)")
     parser.add_argument("--out", help="write results as JSON")
     parser.add_argument("--human-policy", default="orca", choices=["orca", "social_force"])
+    parser.add_argument("--predictor", default="const_vel", choices=["none", "const_vel", "truth", "gst"],
+                        help="env.predictor (gst: the shipped learned model runs in every env step)")
     parser.add_argument("--envs", type=int, nargs="*",
                         help="env counts (default: 64 256 1024; quick: the default config's)")
     parser.add_argument("--nets", nargs="*", help="name/size pairs, e.g. hh_attn/small mlp/small")
@@ -185,7 +190,7 @@ def main(argv=None):
             if size == "paper" and name == "hh_attn" and n > 256 and not args.envs:
                 continue  # minutes per point on 2 cores
             r = measure(name, size, n, args.human_policy, args.num_steps, updates, breakdown, repeats, args.epochs,
-                        args.minibatches, args.microbatch_envs, args.shards)
+                        args.minibatches, args.microbatch_envs, args.shards, args.predictor)
             results.append(r)
             print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} {r.get('env_s', 0):>7.3f} "
                   f"{r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f} {'':>12} "
