@@ -105,15 +105,24 @@ def test_ade_loss_shapes_the_network_by_position_error_only():
     """Under "ade" the spreads' NLL trains only the head's spread rows; the forward pass is unchanged."""
     data = data_lib.device_arrays(synthetic()["arrays"])
     batch = jax.vmap(lambda es: data_lib.make_window(data, es))(jnp.array([[0, 3], [1, 20], [2, 5]]))
-    params = train_lib.init_state(train_lib.TrainConfig(cv_prior=True)).params
+    params = jax.jit(lambda: train_lib.init_state(train_lib.TrainConfig(cv_prior=True)).params)()
     params = {**params, "head": jax.tree_util.tree_map(lambda x: x + 0.01, params["head"])}  # off the prior
-    model = lambda p, detach: jax.vmap(  # noqa: E731
-        lambda b: step_gaussians(p, b.positions, b.visible, detach_spreads=detach))(batch)
-    for a, b in zip(jax.tree_util.tree_leaves(model(params, True)), jax.tree_util.tree_leaves(model(params, False))):
+
+    @jax.jit  # one program for both variants: run eagerly, every op is a program of its own
+    def forward_and_spread_grads(p):
+        out = {}
+        for detach in (True, False):
+            model = lambda q: jax.vmap(  # noqa: E731
+                lambda b: step_gaussians(q, b.positions, b.visible, detach_spreads=detach))(batch)
+            spread_loss = lambda q: train_lib.gaussians_loss(  # noqa: E731
+                model(q).replace(mu=jnp.zeros((3, 3, 5, 2))), batch, "nll")
+            out[detach] = (model(p), jax.grad(spread_loss)(p))
+        return out
+
+    out = forward_and_spread_grads(params)
+    (g_detached, detached), (g_attached, attached) = out[True], out[False]
+    for a, b in zip(jax.tree_util.tree_leaves(g_detached), jax.tree_util.tree_leaves(g_attached)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    spread_loss = lambda p, detach: train_lib.gaussians_loss(  # noqa: E731
-        model(p, detach).replace(mu=jnp.zeros((3, 3, 5, 2))), batch, "nll")
-    detached, attached = (jax.grad(spread_loss)(params, d) for d in (True, False))
     assert all(not np.any(np.asarray(x)) for x in jax.tree_util.tree_leaves(detached["lstm"]))
     assert any(np.any(np.asarray(x)) for x in jax.tree_util.tree_leaves(attached["lstm"]))
     assert np.any(np.asarray(detached["head"]["kernel"][:, 2:])) and not np.any(detached["head"]["kernel"][:, :2])
