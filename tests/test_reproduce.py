@@ -5,7 +5,7 @@ import dataclasses
 import json
 import math
 import pathlib
-import types
+import sys
 
 import pytest
 import yaml
@@ -127,40 +127,49 @@ def test_row_states(tmp_path):
     assert runner.row_state(row) == "done"
 
 
+SWEEP_CHILD = """
+import signal, sys, time
+signal.signal(signal.SIGINT, signal.default_int_handler)
+print("update 5", flush=True)
+try:
+    time.sleep(120)
+except KeyboardInterrupt:
+    print("tgrf-sweep: interrupted", flush=True)
+    sys.exit(130)
+"""
+
+
 def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
-    class Interrupted:  # a sweep child whose output stops with Ctrl-C
-        def __init__(self, cmd, **kwargs):
-            self.cmd = cmd
+    # Ctrl-C reaches tgrf-reproduce alone (its sweep child is still training): the child is stopped, its last
+    # lines are logged, and the invocation is recorded with the child's own exit code.
+    real_popen = runner.subprocess.Popen
+    commands = []
 
-        def __enter__(self):
-            return self
+    def sweep_child(cmd, **kwargs):
+        commands.append(cmd)
+        return real_popen([sys.executable, "-c", SWEEP_CHILD], **kwargs)
 
-        def __exit__(self, *exc):
-            return False
-
-        @property
-        def stdout(self):
-            yield "update 5\n"
-            raise KeyboardInterrupt
-
-        def wait(self):
-            return -2
-
-    real = runner.subprocess  # the commit lookup still runs git
-    monkeypatch.setattr(runner, "subprocess", types.SimpleNamespace(
-        Popen=Interrupted, PIPE=real.PIPE, STDOUT=real.STDOUT, run=real.run, SubprocessError=real.SubprocessError))
+    monkeypatch.setattr(runner.subprocess, "Popen", sweep_child)
+    monkeypatch.setattr(runner, "INTERRUPT_GRACE_S", 0.5)
     exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
     row_dir = tmp_path / "out" / "mlp"
     (row_dir / "checkpoints" / "50").mkdir(parents=True)
     (row_dir / "sweep.yaml").write_text("{}")
     lines = []
+
+    def ctrl_c_at_first_line(line):
+        lines.append(line)
+        if len(lines) % 2:
+            raise KeyboardInterrupt
+
     for _ in range(2):
         with pytest.raises(KeyboardInterrupt):
-            runner.run_row(exp, exp.rows[0], row_dir, lines.append)
+            runner.run_row(exp, exp.rows[0], row_dir, ctrl_c_at_first_line)
     prov = json.loads((row_dir / "provenance.json").read_text())
-    assert [i["exit_code"] for i in prov["invocations"]] == [-2, -2] and prov["wall_s"] > 0
+    assert [i["exit_code"] for i in prov["invocations"]] == [130, 130] and prov["wall_s"] > 0
     assert prov["invocations"][0]["command"].startswith("tgrf-sweep --resume")
-    assert lines == ["  mlp | update 5"] * 2
+    assert commands[0][-2:] == ["--resume", str(row_dir)]
+    assert lines == ["  mlp | update 5", "  mlp | tgrf-sweep: interrupted"] * 2
 
 
 def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):

@@ -13,6 +13,7 @@ import json
 import os
 import pathlib
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -98,6 +99,22 @@ def _fmt_duration(seconds: float) -> str:
     return f"{seconds // 3600}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
 
 
+INTERRUPT_GRACE_S = 10.0
+
+
+def _stop_child(proc: subprocess.Popen) -> None:
+    """Let the sweep stop after this process was interrupted. Ctrl-C in a terminal (or a signal to the process
+    group) reaches the sweep too, and it stops at once; the row then resumes from its last checkpoint. Where the
+    signal reached this process alone, the sweep gets SIGINT, and SIGTERM if it ignores that (as a job started in
+    the background of a non-interactive shell does)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            proc.wait(timeout=INTERRUPT_GRACE_S)
+            return
+        except subprocess.TimeoutExpired:
+            proc.send_signal(sig)
+
+
 def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None]) -> int:
     """Train (or resume) one row as a tgrf-sweep child process; returns its exit code."""
     state = row_state(row_dir)
@@ -113,11 +130,16 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
         with proc:
-            for line in proc.stdout:
-                say(f"  {row.name} | {line.rstrip()}")
+            try:
+                for line in proc.stdout:
+                    say(f"  {row.name} | {line.rstrip()}")
+            except KeyboardInterrupt:
+                _stop_child(proc)
+                for line in proc.stdout:  # its last words, read so that it does not die on a closed pipe
+                    say(f"  {row.name} | {line.rstrip()}")
+                raise
     finally:
-        # Also when interrupted (Ctrl-C reaches the sweep too, which checkpoints and exits): a row trained over
-        # several invocations keeps the wall time and commit of each.
+        # Also when interrupted: a row trained over several invocations keeps the wall time and commit of each.
         code = proc.wait()
         if row_dir.is_dir():
             prov["wall_s"] += time.perf_counter() - started
