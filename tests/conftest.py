@@ -13,6 +13,14 @@ import tgrf_jax  # noqa: E402
 
 tgrf_jax.configure_cpu()
 
+# The suite checks behaviour, not the speed of generated code (benchmarks/ measures that, with XLA's defaults),
+# and most of its time is XLA compiling small programs that then run briefly. Without LLVM's optimisation passes
+# those compiles are much shorter: the suite takes about a fifth less time. Programs compared with each other (resume,
+# sweep against a solo run, determinism) are compiled alike. TGRF_JAX_TEST_XLA_OPT=full keeps XLA's defaults.
+OPT_FLAG = "--xla_backend_optimization_level"
+if os.environ.get("TGRF_JAX_TEST_XLA_OPT", "fast") != "full" and OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {OPT_FLAG}=0".strip()
+
 
 # Many tests compile the same programs (the tiny training chunk, the evaluation; in-process and in CLI
 # subprocesses). They share a persistent compilation cache that lives for one pytest invocation: created empty by
