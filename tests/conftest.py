@@ -18,7 +18,10 @@ tgrf_jax.configure_cpu()
 # those compiles are much shorter: the suite takes about a fifth less time. Programs compared with each other (resume,
 # sweep against a solo run, determinism) are compiled alike. TGRF_JAX_TEST_XLA_OPT=full keeps XLA's defaults.
 OPT_FLAG = "--xla_backend_optimization_level"
-if os.environ.get("TGRF_JAX_TEST_XLA_OPT", "fast") != "full" and OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
+TEST_XLA_OPT = os.environ.get("TGRF_JAX_TEST_XLA_OPT", "fast")
+if TEST_XLA_OPT not in ("fast", "full"):
+    raise ValueError(f"TGRF_JAX_TEST_XLA_OPT={TEST_XLA_OPT!r}: allowed 'fast' (the default) or 'full'")
+if TEST_XLA_OPT == "fast" and OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {OPT_FLAG}=0".strip()
 
 

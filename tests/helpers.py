@@ -1,10 +1,17 @@
 """Shared test helpers: small environments and hand-built states."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax.env import EnvState, Humans, Robot
+
+
+def cpu_devices_env(n: int) -> dict:
+    """XLA_FLAGS for a subprocess with n CPU devices, keeping the suite's other XLA settings (tests/conftest.py)."""
+    return {"XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={n}"}
 
 
 def make_env(**overrides) -> CrowdNavEnv:

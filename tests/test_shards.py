@@ -14,6 +14,8 @@ from tgrf_jax.config import ConfigError, TrainConfig
 from tgrf_jax.train import make_train, shards
 from tgrf_jax.train.shards import SHARD_AXIS
 
+from helpers import cpu_devices_env
+
 
 def sharded_config(**ppo) -> TrainConfig:
     return TrainConfig.from_dict({
@@ -79,8 +81,7 @@ print(json.dumps({"devices": len(jax.devices()), "mesh": train(mesh), "vmap": tr
 
 @pytest.fixture(scope="module")
 def placements():
-    env = dict(os.environ, JAX_PLATFORMS="cpu",
-               XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2")
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **cpu_devices_env(2))
     # the timeout is a hang guard for a busy machine, not a speed check
     out = subprocess.run([sys.executable, "-c", PLACEMENTS, json.dumps(sharded_config().to_dict())], env=env,
                          capture_output=True, text=True, timeout=900)

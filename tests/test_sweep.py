@@ -25,7 +25,7 @@ from tgrf_jax.sweep import (
 )
 from tgrf_jax.train.loop import restore_run, train_run
 
-from helpers import CompileCounter, flip_a_bit
+from helpers import CompileCounter, cpu_devices_env, flip_a_bit
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -85,11 +85,6 @@ def _assert_evals(path_a, path_b, exact: bool):
             assert eb[k] is None, k
         else:
             assert eb[k] == pytest.approx(v, rel=1e-4, abs=1e-5), k
-
-
-def _device_count(n: int) -> dict:
-    """XLA_FLAGS for a subprocess with n CPU devices, keeping the suite's other XLA settings."""
-    return {"XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={n}"}
 
 
 def _sweep_cli(args, env_extra, **kw):
@@ -251,7 +246,7 @@ def test_damaged_checkpoint_names_intact_steps_and_resumes_from_one(sweep, tmp_p
 def test_sharded_over_4_devices_matches_unsharded(sweep, tmp_path):
     """The same sweep on 4 fake CPU devices (6 runs padded to 8, 2 per device) in a subprocess."""
     out = tmp_path / "sharded"
-    proc = _sweep_cli(["--out", str(out)], _device_count(4),
+    proc = _sweep_cli(["--out", str(out)], cpu_devices_env(4),
                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _, stderr = proc.communicate(timeout=600)
     assert proc.returncode == 0, stderr[-3000:]
@@ -273,9 +268,9 @@ def test_two_hosts_match_one_host(tmp_path):
     """Multi-controller JAX: 2 processes x 2 CPU devices (jax.distributed over localhost, gloo) give bit-identical
     runs to 1 process x 4 devices (2 runs per device in both)."""
     one, two = tmp_path / "one", tmp_path / "two"
-    four = _device_count(4)
+    four = cpu_devices_env(4)
     assert _sweep_cli(["--out", str(one)], four).wait(timeout=900) == 0
-    two_devices = _device_count(2)
+    two_devices = cpu_devices_env(2)
     port = 12000 + os.getpid() % 2000
     procs = [_sweep_cli(["--out", str(two), "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
                          "--process-id", str(i)], two_devices, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
