@@ -128,15 +128,18 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     started = time.perf_counter()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+
+    def relay_output():
+        for line in proc.stdout:
+            say(f"  {row.name} | {line.rstrip()}")
+
     try:
         with proc:
             try:
-                for line in proc.stdout:
-                    say(f"  {row.name} | {line.rstrip()}")
+                relay_output()
             except KeyboardInterrupt:
                 _stop_child(proc)
-                for line in proc.stdout:  # its last words, read so that it does not die on a closed pipe
-                    say(f"  {row.name} | {line.rstrip()}")
+                relay_output()  # its last words, read so that it does not die on a closed pipe
                 raise
     finally:
         # Also when interrupted: a row trained over several invocations keeps the wall time and commit of each.
