@@ -129,19 +129,18 @@ def test_row_states(tmp_path):
 
 SWEEP_CHILD = """
 import signal, sys, time
-signal.signal(signal.SIGINT, signal.default_int_handler)
-print("update 5", flush=True)
-try:
-    time.sleep(120)
-except KeyboardInterrupt:
-    print("tgrf-sweep: interrupted", flush=True)
+def stop(signum, frame):
+    print("stopped at update 7, with a checkpoint", flush=True)
     sys.exit(130)
+signal.signal(signal.SIGTERM, stop)
+print("update 5", flush=True)
+time.sleep(120)
 """
 
 
 def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
-    # Ctrl-C reaches tgrf-reproduce alone (its sweep child is still training): the child is stopped, its last
-    # lines are logged, and the invocation is recorded with the child's own exit code.
+    # Ctrl-C reaches tgrf-reproduce alone (its sweep child is still training): the child is asked to stop with a
+    # checkpoint, its last lines are logged, and the invocation is recorded with the child's own exit code.
     real_popen = runner.subprocess.Popen
     commands = []
 
@@ -150,7 +149,6 @@ def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
         return real_popen([sys.executable, "-c", SWEEP_CHILD], **kwargs)
 
     monkeypatch.setattr(runner.subprocess, "Popen", sweep_child)
-    monkeypatch.setattr(runner, "INTERRUPT_GRACE_S", 0.5)
     exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
     row_dir = tmp_path / "out" / "mlp"
     (row_dir / "checkpoints" / "50").mkdir(parents=True)
@@ -169,7 +167,7 @@ def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
     assert [i["exit_code"] for i in prov["invocations"]] == [130, 130] and prov["wall_s"] > 0
     assert prov["invocations"][0]["command"].startswith("tgrf-sweep --resume")
     assert commands[0][-2:] == ["--resume", str(row_dir)]
-    assert lines == ["  mlp | update 5", "  mlp | tgrf-sweep: interrupted"] * 2
+    assert lines == ["  mlp | update 5", "  mlp | stopped at update 7, with a checkpoint"] * 2
 
 
 def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):

@@ -1,4 +1,5 @@
-"""tgrf-train / tgrf-eval RUN_DIR: run-directory artifacts, config errors, checkpoints, resume after SIGKILL."""
+"""tgrf-train / tgrf-eval RUN_DIR: run-directory artifacts, config errors, checkpoints, stopping on a signal, resume
+after SIGKILL."""
 
 import csv
 import json
@@ -138,6 +139,27 @@ def test_damaged_checkpoint_names_intact_steps_and_resumes_from_one(tiny_run, tm
     assert sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit()) == [4, 8]
     assert [int(r["update"]) for r in csv.DictReader(open(run / "metrics.csv"))] == [2, 4, 6, 8]
     assert not (run / "eval.json").exists()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_stops_after_the_chunk_with_a_checkpoint_and_resume_is_bit_identical(tiny_run, tmp_path, signum):
+    run, config = tmp_path / "run", load_run_config(tiny_run)
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    lines = []
+
+    def signal_during_update_2(line):  # update 2 is no checkpoint update (checkpoint_every 4)
+        lines.append(line)
+        if "update 2]" in line:
+            os.kill(os.getpid(), signum)
+
+    with pytest.raises(KeyboardInterrupt):
+        train_run(config, run, log=signal_during_update_2)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers
+    assert sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit()) == [0, 2]
+    assert f"stopped by {signal.Signals(signum).name} at update 2/12" in lines[-1]
+    train_run(config, run, resume=True, log=lambda m: None)
+    assert [int(r["update"]) for r in csv.DictReader(open(run / "metrics.csv"))] == [2, 4, 6, 8, 10, 12]
+    assert params_digest(restore_run(run)[1].params) == params_digest(restore_run(tiny_run)[1].params)
 
 
 def _cli(args, **kw):

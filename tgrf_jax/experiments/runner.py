@@ -99,20 +99,16 @@ def _fmt_duration(seconds: float) -> str:
     return f"{seconds // 3600}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
 
 
-INTERRUPT_GRACE_S = 10.0
-
-
-def _stop_child(proc: subprocess.Popen) -> None:
-    """Let the sweep stop after this process was interrupted. Ctrl-C in a terminal (or a signal to the process
-    group) reaches the sweep too, and it stops at once; the row then resumes from its last checkpoint. Where the
-    signal reached this process alone, the sweep gets SIGINT, and SIGTERM if it ignores that (as a job started in
-    the background of a non-interactive shell does)."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            proc.wait(timeout=INTERRUPT_GRACE_S)
-            return
-        except subprocess.TimeoutExpired:
-            proc.send_signal(sig)
+def _stop_child(proc: subprocess.Popen, relay: Callable[[], None]) -> None:
+    """Stop the sweep after this process was interrupted, and relay its last lines. SIGTERM asks it to stop after
+    its running chunk with a checkpoint (`tgrf_jax.train.stop`; a sweep that Ctrl-C in a terminal reached already
+    is stopping so, and takes it as the same request); another interrupt of this process kills it at once."""
+    proc.send_signal(signal.SIGTERM)
+    try:
+        relay()
+    except KeyboardInterrupt:
+        proc.kill()
+        raise
 
 
 def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None]) -> int:
@@ -138,8 +134,7 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
             try:
                 relay_output()
             except KeyboardInterrupt:
-                _stop_child(proc)
-                relay_output()  # its last words, read so that it does not die on a closed pipe
+                _stop_child(proc, relay_output)  # read to the end: it must not die on a closed pipe
                 raise
     finally:
         # Also when interrupted: a row trained over several invocations keeps the wall time and commit of each.

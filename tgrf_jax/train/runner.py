@@ -19,9 +19,12 @@ import pathlib
 import time
 from typing import Any, Callable, Iterator, Protocol, Sequence
 
+import jax
+
 from tgrf_jax.config import RunConfig
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
 from tgrf_jax.train.progress import ChunkMetrics, combine_runs, csv_row
+from tgrf_jax.train.stop import stop_requests
 
 EVAL_FILE = "eval.json"
 
@@ -121,29 +124,34 @@ def train_runs(
 
     end = total if stop_after_updates is None else min(total, stop_after_updates)
     train_seconds, compiled, update = 0.0, 0, start
-    for n in chunk_plan(start, end, run.log_every, run.checkpoint_every, *cut_every):
-        fn, compile_s = program.compiled_chunk(state, n)
-        if compile_s is not None:
-            compiled += 1
-            say(f"compiled a {n}-update chunk{f' for {G} runs' if G > 1 else ''} in {compile_s:.1f} s")
-        c0 = time.perf_counter()
-        state, raw = fn(state)
-        per_run = program.run_metrics(raw)  # blocks: the chunk is done
-        dt = time.perf_counter() - c0
-        train_seconds += dt
-        update += n
-        wall = wall_offset + time.perf_counter() - start_time
-        row = lambda m, runs: csv_row(m, update, update * batch, wall, runs * n * batch / dt)  # noqa: E731
-        metrics = ChunkMetrics(
-            update=update, total_updates=total, env_steps=update * batch, total_env_steps=total * batch,
-            eta_s=(total - update) * train_seconds / (update - start),
-            runs=tuple(row(m, 1) for m in per_run), total=row(combine_runs(per_run), G))
-        for progress_fn in progress_fns:
-            progress_fn(update * batch, metrics)
-        for state_fn in state_fns:
-            state_fn(update, state)
-        if update % run.checkpoint_every == 0 or update == total:
-            checkpointer.save(update, program.host_state(state))
+    # the hosts of a multi-host sweep could see a signal at different chunks: there Ctrl-C stops at once
+    with stop_requests(enabled=jax.process_count() == 1) as stop:
+        for n in chunk_plan(start, end, run.log_every, run.checkpoint_every, *cut_every):
+            fn, compile_s = program.compiled_chunk(state, n)
+            if compile_s is not None:
+                compiled += 1
+                say(f"compiled a {n}-update chunk{f' for {G} runs' if G > 1 else ''} in {compile_s:.1f} s")
+            c0 = time.perf_counter()
+            state, raw = fn(state)
+            per_run = program.run_metrics(raw)  # blocks: the chunk is done
+            dt = time.perf_counter() - c0
+            train_seconds += dt
+            update += n
+            wall = wall_offset + time.perf_counter() - start_time
+            row = lambda m, runs: csv_row(m, update, update * batch, wall, runs * n * batch / dt)  # noqa: E731
+            metrics = ChunkMetrics(
+                update=update, total_updates=total, env_steps=update * batch, total_env_steps=total * batch,
+                eta_s=(total - update) * train_seconds / (update - start),
+                runs=tuple(row(m, 1) for m in per_run), total=row(combine_runs(per_run), G))
+            for progress_fn in progress_fns:
+                progress_fn(update * batch, metrics)
+            for state_fn in state_fns:
+                state_fn(update, state)
+            if stop or update % run.checkpoint_every == 0 or update == total:
+                checkpointer.save(update, program.host_state(state))
+            if stop:
+                say(f"stopped by {stop.signal_name} at update {update}/{total}, with a checkpoint of that update")
+                raise KeyboardInterrupt
 
     result = RunnerResult(state, start, update, train_seconds, compiled, None)
     if update == total and run.eval_episodes > 0:
