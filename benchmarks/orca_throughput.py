@@ -1,6 +1,6 @@
 """Throughput of ``jax.jit(jax.vmap(tgrf_jax.orca.solve))`` against Python-RVO2's doStep on this machine.
 
-    PYTHONPATH=. python benchmarks/orca_throughput.py [--quick] [--out results.json]
+    PYTHONPATH=. python benchmarks/orca_throughput.py [--quick] [--block both] [--batches 256 4096] [--out FILE]
 
 Scenes are environment-like: N agents uniformly in a square whose area grows with N (about 3.2 m^2 per
 agent, i.e. a 8 m square for 20), radii U(0.3, 0.5) + 0.16, max speeds U(0.5, 1.5), random current velocities
@@ -108,13 +108,15 @@ def rvo2_dostep_rate(n_agents: int, n_steps: int, seed: int = 0) -> float:
     return n_steps / (time.perf_counter() - start)
 
 
-def time_jax(batch: int, n_agents: int, repeats: int, seed: int = 0, kind: str = "initial") -> dict:
+def time_jax(batch: int, n_agents: int, repeats: int, seed: int = 0, kind: str = "initial",
+             block: int | None = None) -> dict:
     """Compile time and median run time of the batched solver on ``batch`` scenes of ``n_agents``
-    (kind: "initial" random scenes or "crossing" mid-rollout states)."""
+    (kind: "initial" random scenes or "crossing" mid-rollout states; block: the solver's LP block size,
+    None: the backend's default)."""
     make = random_scenes if kind == "initial" else crossing_states
     scenes = {k: jnp.asarray(v) for k, v in make(batch, n_agents, seed).items()}
     fn = jax.jit(jax.vmap(lambda p, v, r, pr, m: orca.solve_with_info(p, v, r, pr, m, max_neighbors=n_agents - 1,
-                                                                      **SETTINGS)))
+                                                                      block=block, **SETTINGS)))
     args = (scenes["pos"], scenes["vel"], scenes["radius"], scenes["pref"], scenes["max_speed"])
     t0 = time.perf_counter()
     compiled = fn.lower(*args).compile()
@@ -126,7 +128,7 @@ def time_jax(batch: int, n_agents: int, repeats: int, seed: int = 0, kind: str =
         jax.block_until_ready(compiled(*args))
         runs.append(time.perf_counter() - t0)
     med = statistics.median(runs)
-    return dict(kind=kind, batch=batch, n_agents=n_agents, lp3_share=lp3_share, compile_s=compile_s, median_s=med,
+    return dict(kind=kind, batch=batch, n_agents=n_agents, block=block or orca.default_block(), lp3_share=lp3_share, compile_s=compile_s, median_s=med,
                 min_s=min(runs),
                 scenes_per_s=batch / med, agent_steps_per_s=batch * n_agents / med, repeats=repeats)
 
@@ -142,6 +144,10 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats (< 1 minute)")
     parser.add_argument("--out", help="write the results as JSON to this file")
+    parser.add_argument("--block", choices=("default", "cpu", "whole", "both"), default="default",
+                        help="the solver's LP blocks: the backend's default, 128 problems (a CPU's), one block "
+                             "of the whole batch (a GPU's), or both, timed one after the other per case")
+    parser.add_argument("--batches", type=int, nargs="*", help="scene batch sizes of the 20-agent cases")
     args = parser.parse_args(argv)
     configure_cpu()  # 512-bit vectors on AVX-512, as the command-line tools use
 
@@ -154,14 +160,22 @@ def main(argv=None) -> dict:
                  + [(b, n, "initial") for n in (5, 10, 50) for b in (256, 1024)])
         repeats, rvo2_steps = 5, 2000
 
+    if args.batches:
+        cases = [(b, 20, k) for k in ("initial", "crossing") for b in args.batches]
+    blocks = {"default": [None], "cpu": [orca.CPU_BLOCK], "whole": [orca.WHOLE_BATCH],
+              "both": [orca.CPU_BLOCK, orca.WHOLE_BATCH]}[args.block]
+
     results = dict(machine=machine_info(), settings=SETTINGS, jax=[], rvo2=[])
-    print(f"{'scenes':>9} {'agents':>6} {'batch':>6} {'LP3 %':>6} {'compile s':>10} {'median ms':>10} {'scenes/s':>12} "
-          f"{'agent-steps/s':>14}")
+    print(f"{'scenes':>9} {'agents':>6} {'batch':>6} {'block':>6} {'LP3 %':>6} {'compile s':>10} {'median ms':>10} "
+          f"{'scenes/s':>12} {'agent-steps/s':>14}")
     for batch, n, kind in cases:
-        r = time_jax(batch, n, repeats, kind=kind)
-        results["jax"].append(r)
-        print(f"{kind:>9} {n:>6} {batch:>6} {100 * r['lp3_share']:>6.1f} {r['compile_s']:>10.1f} "
-              f"{1e3 * r['median_s']:>10.2f} {r['scenes_per_s']:>12.0f} {r['agent_steps_per_s']:>14.0f}", flush=True)
+        for block in blocks:
+            r = time_jax(batch, n, repeats, kind=kind, block=block)
+            results["jax"].append(r)
+            name = "whole" if r["block"] == orca.WHOLE_BATCH else r["block"]
+            print(f"{kind:>9} {n:>6} {batch:>6} {name:>6} {100 * r['lp3_share']:>6.1f} {r['compile_s']:>10.1f} "
+                  f"{1e3 * r['median_s']:>10.2f} {r['scenes_per_s']:>12.0f} {r['agent_steps_per_s']:>14.0f}",
+                  flush=True)
     for n in sorted({n for _, n, _ in cases}):
         rate = rvo2_dostep_rate(n, rvo2_steps)
         results["rvo2"].append(dict(n_agents=n, dostep_per_s=rate, agent_steps_per_s=rate * n))

@@ -36,6 +36,11 @@ How it is vectorised (RVO2's algorithm is sequential and branchy):
   pending).  Under ``vmap`` they would become selects and every agent would pay for the worst one, so
   :func:`solve` carries a ``jax.custom_batching.custom_vmap`` rule: ``jax.vmap`` (nested too) hands the
   whole batch to one kernel, where the loops stay loops and the blocks draw from all scenes.
+* Blocks and chunks of 128 problems suit a CPU, where a round costs what its problems cost.  On a GPU a round
+  costs a few kernel launches whatever its width, so there one block (and one chunk) spans the whole batch:
+  looping over 128-problem blocks would launch kernels for every block in turn, a time that grows with the
+  batch.  The block size changes which problems share a loop, never a result (``block`` of
+  :func:`solve_with_info`).
 
 Every division and square root is guarded, so no NaN/inf appears even for coincident agents (where RVO2
 itself divides 0 by 0), zero velocities or agents without neighbours.
@@ -53,8 +58,15 @@ __all__ = ["RVO_EPSILON", "solve", "solve_with_info"]
 
 RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshold in the LPs.
 _BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
-_LP2_BLOCK = 128  # linearProgram2's blocks: each runs dense rounds until its slowest problem is done
-_LP3_CHUNK = 128  # linearProgram3's chunks: each runs dense inner LP2 rounds until its slowest problem is done
+# linearProgram2's blocks (each runs dense rounds until its slowest problem is done) and linearProgram3's chunks
+# (each runs dense inner LP2 rounds until its slowest problem is done), in problems
+CPU_BLOCK = 128
+WHOLE_BATCH = 2**31 - 1  # one block: all problems (clamped to their number)
+
+
+def default_block() -> int:
+    """The block size for the backend that programs compile for: CPU_BLOCK on a CPU, WHOLE_BATCH elsewhere."""
+    return CPU_BLOCK if jax.default_backend() == "cpu" else WHOLE_BATCH
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -493,7 +505,7 @@ def _worklist(step, tables, state, pending, n_rounds, chunk):
 # the batched kernel
 
 
-def _linear_program2(lines, rank, radius, optx, opty):
+def _linear_program2(lines, rank, radius, optx, opty, block):
     """linearProgram2 for every problem (lines (L, P), rank (L, P), the rest (P,)): dense rounds over blocks of
     consecutive problems.  Returns the result as complex(x, y) and the rank of the line where it failed (L:
     none)."""
@@ -502,11 +514,10 @@ def _linear_program2(lines, rank, radius, optx, opty):
     def solve_block(px, py, dx, dy, rank, radius, optx, opty):
         return _lp2_dense((px, py, dx, dy), rank, rank < n, radius, optx, opty, False)
 
-    return _blocked(solve_block, tuple(lines) + (rank, radius, optx, opty), (jnp.complex64, jnp.int32),
-                    _LP2_BLOCK)
+    return _blocked(solve_block, tuple(lines) + (rank, radius, optx, opty), (jnp.complex64, jnp.int32), block)
 
 
-def _linear_program3(lines, rank, radius, r, fail_at):
+def _linear_program3(lines, rank, radius, r, fail_at, chunk):
     """linearProgram3 from the failing line (violated by the current result), only for the problems whose
     linearProgram2 failed (fail_at < L), as a worklist.  Returns the new result (complex)."""
     n = rank.shape[0]
@@ -519,10 +530,10 @@ def _linear_program3(lines, rank, radius, r, fail_at):
 
     tables = tuple(lines) + (rank, radius)
     state = (r, jnp.zeros(r.shape, jnp.float32), fail_key)
-    return _worklist(lp3_step, tables, state, fail_at < n, n, _LP3_CHUNK)[0]
+    return _worklist(lp3_step, tables, state, fail_at < n, n, chunk)[0]
 
 
-def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_dist, *, k):
+def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_dist, *, k, block):
     """Batched core: pos/vel/pref (B, N, 2), rad/vmax/mask (B, N), scalars (B,).  Returns (B, N, 2) and the
     per-agent LP2 failure flag (B, N)."""
     b, n = rad.shape
@@ -545,22 +556,22 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     lines = tuple(x.reshape(n, a) for x in out[:4])
     rank = out[4].reshape(n, a)
 
-    r, fail_at = _linear_program2(lines, rank, radius, ox, oy)
-    r = _linear_program3(lines, rank, radius, r, fail_at)
+    r, fail_at = _linear_program2(lines, rank, radius, ox, oy, block)
+    r = _linear_program3(lines, rank, radius, r, fail_at, block)
     rx, ry, failed = jnp.real(r), jnp.imag(r), fail_at < n
     return jnp.stack([scene_major(rx), scene_major(ry)], -1), scene_major(failed)
 
 
 @functools.lru_cache(maxsize=None)
-def _kernels(k: int):
-    """custom_vmap wrappers for a given (static) neighbour count.
+def _kernels(k: int, block: int):
+    """custom_vmap wrappers for a given (static) neighbour count and block size.
 
     ``scene`` solves one scene; its vmap rule calls ``batch`` on the whole batch; ``batch``'s own vmap rule
     folds any further vmap axis into its batch axis, so nested vmaps also end in one flat kernel.
     """
 
     def core(*args):
-        return _solve_scenes(*args, k=k)
+        return _solve_scenes(*args, k=k, block=block)
 
     @jax.custom_batching.custom_vmap
     def batch(*args):
@@ -587,11 +598,12 @@ def _kernels(k: int):
     return scene
 
 
-@functools.partial(jax.jit, static_argnames=("max_neighbors",))
+@functools.partial(jax.jit, static_argnames=("max_neighbors", "block"))
 def solve_with_info(positions, velocities, radii, pref_velocities, max_speeds, *, time_horizon, dt,
-                    neighbor_dist, max_neighbors, neighbor_mask=None):
+                    neighbor_dist, max_neighbors, neighbor_mask=None, block=None):
     """Like :func:`solve`, and also returns a (N,) bool: True where RVO2's linearProgram2 failed (the 2-D LP
-    was infeasible) and linearProgram3 produced the velocity.  (jitted: eager calls compile once per shape.)"""
+    was infeasible) and linearProgram3 produced the velocity.  (jitted: eager calls compile once per shape.)
+    `block`: problems per LP block (static; None: :func:`default_block`); results do not depend on it."""
     positions = jnp.asarray(positions, jnp.float32)
     n = positions.shape[0]
     if n == 0:
@@ -599,7 +611,10 @@ def solve_with_info(positions, velocities, radii, pref_velocities, max_speeds, *
     k = max(0, min(int(max_neighbors), n - 1))
     mask = jnp.ones((n,), bool) if neighbor_mask is None else jnp.asarray(neighbor_mask, bool)
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return _kernels(k)(positions, f32(velocities), f32(radii), f32(pref_velocities), f32(max_speeds), mask,
+    block = default_block() if block is None else int(block)
+    if block < 1:
+        raise ValueError(f"block = {block}: must be >= 1 (problems per block)")
+    return _kernels(k, block)(positions, f32(velocities), f32(radii), f32(pref_velocities), f32(max_speeds), mask,
                        f32(time_horizon), f32(dt), f32(neighbor_dist))
 
 
