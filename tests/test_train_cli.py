@@ -141,9 +141,9 @@ def test_damaged_checkpoint_names_intact_steps_and_resumes_from_one(tiny_run, tm
     assert not (run / "eval.json").exists()
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-def test_a_signal_stops_after_the_chunk_with_a_checkpoint_and_resume_is_bit_identical(tiny_run, tmp_path, signum):
-    run, config = tmp_path / "run", load_run_config(tiny_run)
+def test_sigterm_stops_after_the_chunk_with_a_checkpoint_and_resume_is_bit_identical(tiny_run, tmp_path):
+    """(tests/test_stop.py: Ctrl-C, a second signal, ignored signals.)"""
+    run, config, signum = tmp_path / "run", load_run_config(tiny_run), signal.SIGTERM
     handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     lines = []
 
