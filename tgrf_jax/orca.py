@@ -54,7 +54,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["RVO_EPSILON", "solve", "solve_with_info"]
+__all__ = ["CPU_BLOCK", "RVO_EPSILON", "WHOLE_BATCH", "default_block", "solve", "solve_with_info"]
 
 RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshold in the LPs.
 _BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
