@@ -20,7 +20,7 @@ from helpers import cpu_devices_env
 def sharded_config(**ppo) -> TrainConfig:
     return TrainConfig.from_dict({
         "env": {"num_humans": 3, "predictor": "const_vel"},
-        "network": {"name": "hh_attn"},
+        "network": {"name": "mlp"},  # shards split the envs; the network does not matter and MLP compiles fastest
         "ppo": {"num_envs": 8, "num_steps": 8, "total_steps": 8 * 8 * 4, "update_epochs": 2, "num_minibatches": 2,
                 "num_shards": 2, **ppo},
     })
