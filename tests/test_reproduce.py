@@ -145,6 +145,8 @@ def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
     commands = []
 
     def sweep_child(cmd, **kwargs):
+        if "tgrf_jax.cli.sweep" not in cmd:  # git, asked for the commit
+            return real_popen(cmd, **kwargs)
         commands.append(cmd)
         return real_popen([sys.executable, "-c", SWEEP_CHILD], **kwargs)
 
@@ -160,13 +162,14 @@ def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
         if len(lines) % 2:
             raise KeyboardInterrupt
 
-    for _ in range(2):
+    for layout in (None, "sequential"):  # the second resumes switching the row's layout
         with pytest.raises(KeyboardInterrupt):
-            runner.run_row(exp, exp.rows[0], row_dir, ctrl_c_at_first_line)
+            runner.run_row(exp, exp.rows[0], row_dir, ctrl_c_at_first_line, layout)
     prov = json.loads((row_dir / "provenance.json").read_text())
     assert [i["exit_code"] for i in prov["invocations"]] == [130, 130] and prov["wall_s"] > 0
     assert prov["invocations"][0]["command"].startswith("tgrf-sweep --resume")
     assert commands[0][-2:] == ["--resume", str(row_dir)]
+    assert commands[1][-4:] == ["--resume", str(row_dir), "--layout", "sequential"]
     assert lines == ["  mlp | update 5", "  mlp | stopped at update 7, with a checkpoint"] * 2
 
 

@@ -31,6 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--export-pretrained", metavar="DIR",
                         help="export the best seed's policy of every finished row and compared value to "
                         "DIR/<experiment>-<row>-<value> (tgrf-eval --pretrained plays it)")
+    parser.add_argument("--layout", choices=("batched", "sequential", "auto"),
+                        help="the tgrf-sweep layout of the rows this command trains: new rows start in it (default: "
+                        "auto, sequential on CPUs), started rows switch to it (default: they keep theirs)")
     args = parser.parse_args(argv)
 
     from tgrf_jax.experiments import report, runner
@@ -59,14 +62,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.print_plan:
             for row in exp.rows:
                 state = runner.row_state(out / row.name)
-                cmd = " ".join(["tgrf-sweep"] + spec_lib.sweep_args(exp, row) + ["--out", str(out / row.name)])
+                cmd = " ".join(["tgrf-sweep"] + spec_lib.sweep_args(exp, row, args.layout or "auto")
+                               + ["--out", str(out / row.name)])
                 print(f"{row.name} [{state}]: {cmd}")
             return 0
         if args.report_only:
             for path in report.write(whole, out):
                 print(path)
             return 0
-        return runner.reproduce(exp, out, export_to=args.export_pretrained, report_exp=whole)
+        return runner.reproduce(exp, out, export_to=args.export_pretrained, report_exp=whole, layout=args.layout)
     except ConfigError as e:
         print(f"tgrf-reproduce: error: {e}", file=sys.stderr)
         return 2

@@ -31,11 +31,12 @@ def parser() -> argparse.ArgumentParser:
                    "the later checkpoints are deleted and their updates trained again")
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="use the first N devices (default: all of them, across all hosts)")
-    p.add_argument("--layout", choices=("batched", "sequential", "auto"), default="batched",
+    p.add_argument("--layout", choices=("batched", "sequential", "auto"), default=None,
                    help="batched (default): each device trains its runs as one vmapped program; sequential: the runs "
                         "take turns, each through tgrf-train's own program (bit-identical to tgrf-train; faster for "
                         "large configs on CPUs); auto: sequential on CPU devices, else batched. Recorded in "
-                        "sweep.yaml: --resume keeps it")
+                        "sweep.yaml: --resume keeps it, --resume with --layout switches it (a sweep begun on a GPU "
+                        "continues on a CPU, say; the runs then match an unswitched resume up to float rounding)")
     p.add_argument("--no-run-checkpoints", action="store_true",
                    help="do not write each run's final checkpoint under runs/<name>/checkpoints")
     dist = p.add_argument_group("multi-host (one process per host, all with the same arguments; the sweep "
@@ -85,15 +86,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.from_step is not None and args.from_step < 0:
             raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
         if args.resume:
-            if args.config or args.grid or args.overrides or args.seeds or args.out or args.layout != "batched":
-                raise ConfigError("--resume SWEEP_DIR takes no config file, --grid, --seeds, --set, --out or --layout "
-                                  "(the sweep's own sweep.yaml is used)")
+            if args.config or args.grid or args.overrides or args.seeds or args.out:
+                raise ConfigError("--resume SWEEP_DIR takes no config file, --grid, --seeds, --set or --out (the "
+                                  "sweep's own sweep.yaml is used)")
             spec = load_sweep(args.resume)
         else:
             spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides,
-                                    "batched" if args.layout == "auto" else args.layout)
+                                    args.layout if args.layout in ("batched", "sequential") else "batched")
         distributed = bool(args.coordinator or args.distributed)
-        if distributed and spec.layout == "sequential":
+        if distributed and (args.layout or spec.layout) == "sequential":
             raise ConfigError("--layout sequential runs on one host; a multi-host sweep needs the batched layout")
         if distributed and args.out is None and not args.resume:
             raise ConfigError("a multi-host sweep needs --out (the same shared directory on every host)")
@@ -104,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         return error("tgrf-sweep", e)
     if args.print_plan:
         # "auto" is resolved once JAX knows its devices, which the plan does not start
-        print((spec if args.resume else dataclasses.replace(spec, layout=args.layout)).describe())
+        print(dataclasses.replace(spec, layout=args.layout or spec.layout).describe())
         return 0
 
     # One CPU device per core: the runs split over the devices, and XLA:CPU runs several programs side by side
@@ -118,16 +119,18 @@ def main(argv: list[str] | None = None) -> int:
     from tgrf_jax.sweep.run import run_sweep
     from tgrf_jax.train.checkpoint import CheckpointError
 
-    if args.layout == "auto" and not args.resume:
+    layout = args.layout
+    if layout == "auto":
         import jax
 
-        sequential = jax.default_backend() == "cpu" and not distributed
-        spec = dataclasses.replace(spec, layout="sequential" if sequential else "batched")
+        layout = "sequential" if jax.default_backend() == "cpu" and not distributed else "batched"
+    if not args.resume:
+        spec = dataclasses.replace(spec, layout=layout or spec.layout)
 
     try:
         run_sweep(None if args.resume else spec, sweep_dir, resume=bool(args.resume), from_step=args.from_step,
                   log=lambda m: print(m, flush=True), num_devices=args.devices,
-                  export_checkpoints=not args.no_run_checkpoints)
+                  export_checkpoints=not args.no_run_checkpoints, layout=layout if args.resume else None)
     except CheckpointError as e:
         return checkpoint_error("tgrf-sweep", e, f"tgrf-sweep --resume {sweep_dir} --from-step")
     except ConfigError as e:

@@ -11,13 +11,13 @@ import csv
 import io
 import json
 import math
-import os
 import pathlib
 import shutil
 
 import numpy as np
 
 from tgrf_jax.experiments.spec import Experiment, Row
+from tgrf_jax.files import write_atomic
 
 REPORT_MD = "report.md"
 REPORT_CSV = "report.csv"
@@ -177,12 +177,6 @@ def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> st
     return "\n".join(parts) + "\n"
 
 
-def _write_atomic(path: pathlib.Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def write(exp: Experiment, out) -> list[pathlib.Path]:
     """report.md and report.csv in `out` (and the rows' figures); returns the written paths."""
     out = pathlib.Path(out)
@@ -196,6 +190,6 @@ def write(exp: Experiment, out) -> list[pathlib.Path]:
     w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, extrasaction="ignore")
     w.writeheader()
     w.writerows(records)
-    _write_atomic(out / REPORT_CSV, buf.getvalue())
-    _write_atomic(out / REPORT_MD, format_report(exp, out, records))
+    write_atomic(out / REPORT_CSV, buf.getvalue())
+    write_atomic(out / REPORT_MD, format_report(exp, out, records))
     return [out / REPORT_MD, out / REPORT_CSV]

@@ -24,16 +24,11 @@ import yaml
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import report
 from tgrf_jax.experiments.spec import Experiment, Row, sweep_args
+from tgrf_jax.files import write_atomic
 
 EXPERIMENT_FILE = "experiment.yaml"
 PROVENANCE_FILE = "provenance.json"
 LOG_FILE = "reproduce.log"
-
-
-def _write_atomic(path: pathlib.Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def source_commit() -> str:
@@ -91,7 +86,7 @@ def _record(exp: Experiment, out: pathlib.Path) -> None:
         old = yaml.safe_load(recorded.read_text())
         names = {r["name"] for r in data["rows"]}
         data["rows"] = [r for r in old.get("rows", []) if r["name"] not in names] + data["rows"]
-    _write_atomic(recorded, yaml.safe_dump(data, sort_keys=False))
+    write_atomic(recorded, yaml.safe_dump(data, sort_keys=False))
 
 
 def _fmt_duration(seconds: float) -> str:
@@ -111,14 +106,19 @@ def _stop_child(proc: subprocess.Popen, relay: Callable[[], None]) -> None:
         raise
 
 
-def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None]) -> int:
-    """Train (or resume) one row as a tgrf-sweep child process; returns its exit code."""
+def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None],
+            layout: str | None = None) -> int:
+    """Train (or resume) one row as a tgrf-sweep child process; returns its exit code. `layout`: a new row's
+    sweep layout (default auto), or the layout a started row switches to (default: the one it has)."""
     state = row_state(row_dir)
     if state == "stale":
         say(f"  {row.name}: stopped before its first checkpoint; starting it again")
         shutil.rmtree(row_dir)
     cmd = [sys.executable, "-m", "tgrf_jax.cli.sweep"]
-    cmd += ["--resume", str(row_dir)] if state == "resumable" else sweep_args(exp, row) + ["--out", str(row_dir)]
+    if state == "resumable":
+        cmd += ["--resume", str(row_dir)] + (["--layout", layout] if layout else [])
+    else:
+        cmd += sweep_args(exp, row, layout or "auto") + ["--out", str(row_dir)]
     prov_path = row_dir / PROVENANCE_FILE
     prov = json.loads(prov_path.read_text()) if prov_path.is_file() else {"wall_s": 0.0, "invocations": []}
     started = time.perf_counter()
@@ -146,7 +146,7 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
                 "finished": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
                 "command": " ".join(["tgrf-sweep"] + cmd[3:]),
             })
-            _write_atomic(prov_path, json.dumps(prov, indent=2))
+            write_atomic(prov_path, json.dumps(prov, indent=2))
     return code
 
 
@@ -182,20 +182,20 @@ def _provenance_commit(row_dir: pathlib.Path) -> str | None:
 
 
 def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, export_to=None,
-              report_exp: Experiment | None = None) -> int:
+              report_exp: Experiment | None = None, layout: str | None = None) -> int:
     """Run every unfinished row of `exp` into `out`, rewriting the report after each row; returns an exit code.
     With `export_to`, each finished row's best policies are exported there (`export_best`). The report covers
     `report_exp` (default `exp`): the whole experiment when `exp` is a selection of its rows, so rows finished
-    by earlier selections stay in the table."""
+    by earlier selections stay in the table. `layout`: see `run_row`."""
     from tgrf_jax.train.lock import exclusive
 
     out = pathlib.Path(out)
     check_out_dir(exp, out)
     with exclusive(out):
-        return _reproduce(exp, out, log, export_to, report_exp or exp)
+        return _reproduce(exp, out, log, export_to, report_exp or exp, layout)
 
 
-def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: Experiment) -> int:
+def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: Experiment, layout) -> int:
     _record(exp, out)
     log_file = open(out / LOG_FILE, "a", buffering=1)
 
@@ -219,7 +219,7 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
                 eta = f"; about {_fmt_duration(per_row * (len(todo) - i))} left"
             say(f"[{exp.name}] row {done + 1}/{len(exp.rows)}: {row.label} ({row.name}), "
                 f"{states[row.name]}; {_fmt_duration(time.perf_counter() - t0)} elapsed{eta}")
-            code = run_row(exp, row, out / row.name, say)
+            code = run_row(exp, row, out / row.name, say, layout)
             if code != 0:
                 say(f"[{exp.name}] row {row.name} stopped (exit code {code}); rerun the same command to resume")
                 return 130 if code in (130, -2) else code

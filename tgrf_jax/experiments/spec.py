@@ -222,7 +222,7 @@ def load(name_or_path: str) -> Experiment:
     return exp
 
 
-def sweep_args(exp: Experiment, row: Row) -> list[str]:
+def sweep_args(exp: Experiment, row: Row, layout: str = "auto") -> list[str]:
     """The tgrf-sweep arguments of one row (without --out / --resume)."""
     args = [exp.config] if exp.config else []
     for key, values in row.grid:
@@ -230,8 +230,9 @@ def sweep_args(exp: Experiment, row: Row) -> list[str]:
     args += ["--seeds", str(exp.seeds)]
     for item in row.overrides:
         args += ["--set", item]
-    # on CPUs the runs of a row train fastest one after another (each as tgrf-train trains it); elsewhere batched
-    return args + ["--layout", "auto"]
+    # auto: on CPUs the runs of a row train fastest one after another (each as tgrf-train trains it); elsewhere
+    # batched
+    return args + ["--layout", layout]
 
 
 def sweep_spec(exp: Experiment, row: Row):

@@ -27,7 +27,8 @@ from typing import Any, Callable
 import yaml
 
 from tgrf_jax.config import ConfigError, TrainConfig
-from tgrf_jax.sweep.grid import SWEEP_FILE, SweepSpec, _fmt_value, load_sweep
+from tgrf_jax.files import write_atomic
+from tgrf_jax.sweep.grid import SWEEP_FILE, SweepSpec, _fmt_value, check_layout, load_sweep
 from tgrf_jax.sweep.program import SequentialBatch, SweepBatch, barrier
 from tgrf_jax.sweep.report import RUNS_DIR, format_summary_markdown, plot_sweep, write_results
 from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer, tree_digest
@@ -88,10 +89,15 @@ def run_sweep(
     devices=None,
     num_devices: int | None = None,
     export_checkpoints: bool = True,
+    layout: str | None = None,
 ) -> SweepResult:
     """Train every run of `spec` in `sweep_dir` as one batch (or resume the sweep there: `spec=None, resume=True`,
     from its latest checkpoint or from checkpoint `from_step`). Resuming a finished sweep trains nothing and
     re-creates its result files (evals.csv, summaries, plots, the runs' final checkpoints where missing).
+
+    `layout` (with `resume`): continue in this layout instead of the recorded one, which sweep.yaml then records.
+    Both layouts checkpoint the same state, so a sweep begun batched on a GPU can go on sequentially on a CPU;
+    its runs then continue equal to an unswitched resume up to float rounding, not bit for bit.
 
     `devices` (default: all, `jax.devices()`; or the first `num_devices` of them) carry the run axis.
     `stop_after_updates` ends early, as an interruption would (for tests). Process 0 holds the sweep directory's
@@ -101,11 +107,16 @@ def run_sweep(
     sweep_dir = pathlib.Path(sweep_dir)
     if from_step is not None and not resume:
         raise ConfigError("from_step needs resume (a sweep restarts from one of its own checkpoints)")
+    if layout is not None:
+        if not resume:
+            raise ConfigError("layout switches the layout of a resumed sweep (a new one takes its spec's layout)")
+        check_layout(layout)
     if resume:
         load_sweep(sweep_dir)  # a clear error for a directory that holds no sweep
     elif (sweep_dir / SWEEP_FILE).exists():
         raise ConfigError(f"sweep directory {str(sweep_dir)!r} already holds a sweep; use --resume or another --out")
-    args = (spec, sweep_dir, resume, from_step, log, stop_after_updates, devices, num_devices, export_checkpoints)
+    args = (spec, sweep_dir, resume, from_step, log, stop_after_updates, devices, num_devices, export_checkpoints,
+            layout)
     if jax.process_index() != 0:
         return _run_sweep(*args)
     with exclusive(sweep_dir):
@@ -113,16 +124,19 @@ def run_sweep(
 
 
 def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after_updates, devices, num_devices,
-               export_checkpoints) -> SweepResult:
+               export_checkpoints, layout) -> SweepResult:
     import jax
 
     main = jax.process_index() == 0
     ckpt_dir = sweep_dir / CHECKPOINT_DIR
+    switched_from = None
     if resume:
         loaded = load_sweep(sweep_dir)
         if spec is not None and spec.to_dict() != loaded.to_dict():
             raise ConfigError(f"{str(sweep_dir)!r} holds a different sweep than the one given")
         spec = loaded
+        if layout is not None and layout != spec.layout:
+            switched_from, spec = spec.layout, dataclasses.replace(spec, layout=layout)
     elif (sweep_dir / SWEEP_FILE).exists():
         raise ConfigError(f"sweep directory {str(sweep_dir)!r} already holds a sweep; use --resume or another --out")
     if devices is None:
@@ -142,9 +156,14 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after
         for r, d in zip(runs, run_dirs):
             d.mkdir(parents=True, exist_ok=True)
             (d / CONFIG_FILE).write_text(r.config.to_yaml())
+    if switched_from is not None and main:
+        write_atomic(sweep_dir / SWEEP_FILE, yaml.safe_dump(spec.to_dict(), sort_keys=False))
     barrier("tgrf_sweep_written")
 
     say = LogFile(sweep_dir / LOG_FILE, log, enabled=main)
+    if switched_from is not None:
+        say(f"layout switched from {switched_from} to {spec.layout} (recorded in {SWEEP_FILE}): from here the runs "
+            f"equal an unswitched resume up to float rounding, not bit for bit")
     program = (SequentialBatch if spec.layout == "sequential" else SweepBatch)(runs, devices)
     run_cfg = runs[0].config.run
     ckpt = Checkpointer(ckpt_dir, keep=run_cfg.keep_checkpoints, create=True)  # a run stopped before its first checkpoint has none yet
