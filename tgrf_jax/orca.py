@@ -269,8 +269,11 @@ def _computed_once(fn, *args):
     conditional whose predicate is only known at run time (always true), so it is one fusion whose result is
     materialised; a pair leaves it as one complex64, which the simplifier cannot split into two chains again
     through the conditional.  (A gather with a run-time index would also be a boundary, but XLA fuses the
-    chain into the gather, whose loop is not vectorised.)
+    chain into the gather, whose loop is not vectorised.)  Elsewhere fusion follows other rules, and a
+    conditional waits for its predicate to reach the host: there this is plain fn(*args).
     """
+    if jax.default_backend() != "cpu":
+        return fn(*args)
     args = tuple(jnp.asarray(x) for x in args)
     pair = isinstance(jax.eval_shape(fn, *args), tuple)
 
