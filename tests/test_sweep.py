@@ -6,7 +6,6 @@ sweep interrupted and resumed, and (c) the same sweep on 4 fake CPU devices in a
 """
 
 import csv
-import dataclasses
 import json
 import math
 import os
@@ -178,15 +177,17 @@ def test_run_in_sweep_matches_tgrf_train(sweep, tmp_path):
     _assert_evals(tmp_path / "alone" / "eval.json", seq_dir / "eval.json", exact=True)
 
     # A sweep begun batched (on a GPU, say) can go on in the sequential layout: both checkpoint the same state.
+    # (One run: both layouts then run tgrf-train's program, so the switched sweep still equals it bit for bit.)
     switched = tmp_path / "switched"
-    run_sweep(dataclasses.replace(seq, layout="batched"), switched, log=lambda m: None, stop_after_updates=4)
+    run_sweep(single, switched, log=lambda m: None, stop_after_updates=4)
     with pytest.raises(ConfigError, match="layout switches the layout of a resumed sweep"):
-        run_sweep(seq, tmp_path / "new", layout="sequential")
+        run_sweep(single, tmp_path / "new", layout="sequential")
     assert main(["--resume", str(switched), "--layout", "sequential"]) == 0
     assert load_yaml(switched / "sweep.yaml")["layout"] == "sequential"
     assert "layout switched from batched to sequential" in (switched / "progress.log").read_text()
-    _, in_switched = restore_run(switched / "runs" / seq_dir.name)
-    _assert_states(alone.state, in_switched, exact=False)
+    _, in_switched = restore_run(switched / "runs" / single_dir.name)
+    _assert_states(alone.state, in_switched, exact=True)
+    _assert_curves(tmp_path / "alone" / "metrics.csv", switched / "runs" / single_dir.name / "metrics.csv", exact=True)
 
 
 def test_resume_after_interruption_matches_uninterrupted(sweep, tmp_path):
