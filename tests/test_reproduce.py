@@ -140,22 +140,21 @@ time.sleep(120)
 
 def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
     # Ctrl-C reaches tgrf-reproduce alone (its sweep child is still training): the child is asked to stop with a
-    # checkpoint, its last lines are logged, and the invocation is recorded with the child's own exit code.
+    # checkpoint, its last lines are logged, and the invocation is recorded with the child's own exit code and the
+    # commit of the code it started with (the tree may move on while a row trains).
     real_popen = runner.subprocess.Popen
-    commands = []
+    commands, lines = [], []
 
     def sweep_child(cmd, **kwargs):
-        if "tgrf_jax.cli.sweep" not in cmd:  # git, asked for the commit
-            return real_popen(cmd, **kwargs)
         commands.append(cmd)
         return real_popen([sys.executable, "-c", SWEEP_CHILD], **kwargs)
 
     monkeypatch.setattr(runner.subprocess, "Popen", sweep_child)
+    monkeypatch.setattr(runner, "source_commit", lambda: f"commit after {len(lines)} lines")
     exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
     row_dir = tmp_path / "out" / "mlp"
     (row_dir / "checkpoints" / "50").mkdir(parents=True)
     (row_dir / "sweep.yaml").write_text("{}")
-    lines = []
 
     def ctrl_c_at_first_line(line):
         lines.append(line)
@@ -167,6 +166,7 @@ def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
             runner.run_row(exp, exp.rows[0], row_dir, ctrl_c_at_first_line, layout)
     prov = json.loads((row_dir / "provenance.json").read_text())
     assert [i["exit_code"] for i in prov["invocations"]] == [130, 130] and prov["wall_s"] > 0
+    assert [i["commit"] for i in prov["invocations"]] == ["commit after 0 lines", "commit after 2 lines"]
     assert prov["invocations"][0]["command"].startswith("tgrf-sweep --resume")
     assert commands[0][-2:] == ["--resume", str(row_dir)]
     assert commands[1][-4:] == ["--resume", str(row_dir), "--layout", "sequential"]

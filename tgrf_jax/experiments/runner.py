@@ -121,7 +121,7 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
         cmd += sweep_args(exp, row, layout or "auto") + ["--out", str(row_dir)]
     prov_path = row_dir / PROVENANCE_FILE
     prov = json.loads(prov_path.read_text()) if prov_path.is_file() else {"wall_s": 0.0, "invocations": []}
-    started = time.perf_counter()
+    started, commit = time.perf_counter(), source_commit()  # the code the sweep imports now, not at its end
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
 
@@ -142,7 +142,7 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
         if row_dir.is_dir():
             prov["wall_s"] += time.perf_counter() - started
             prov["invocations"].append({
-                "commit": source_commit(), "machine": machine(), "exit_code": code,
+                "commit": commit, "machine": machine(), "exit_code": code,
                 "finished": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
                 "command": " ".join(["tgrf-sweep"] + cmd[3:]),
             })
