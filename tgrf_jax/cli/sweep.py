@@ -91,8 +91,7 @@ def main(argv: list[str] | None = None) -> int:
                                   "sweep's own sweep.yaml is used)")
             spec = load_sweep(args.resume)
         else:
-            spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides,
-                                    args.layout if args.layout in ("batched", "sequential") else "batched")
+            spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides)  # layout: set below
         distributed = bool(args.coordinator or args.distributed)
         if distributed and (args.layout or spec.layout) == "sequential":
             raise ConfigError("--layout sequential runs on one host; a multi-host sweep needs the batched layout")
