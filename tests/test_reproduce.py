@@ -127,6 +127,26 @@ def test_row_states(tmp_path):
     assert runner.row_state(row) == "done"
 
 
+def test_machine_names_the_gpus_the_driver_lists_unless_jax_is_kept_off_them(tmp_path, monkeypatch):
+    for slot, model in enumerate(["NVIDIA H100 80GB HBM3", "NVIDIA H100 80GB HBM3", "NVIDIA H200"]):
+        gpu = tmp_path / f"0000:0{slot}:00.0"
+        gpu.mkdir()
+        (gpu / "information").write_text(f"Model: \t\t {model}\nIRQ:   \t\t 42\n")
+    monkeypatch.setattr(runner, "NVIDIA_DRIVER_GPUS", tmp_path)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+    assert runner.machine().endswith(" cores, 2 x NVIDIA H100 80GB HBM3, 1 x NVIDIA H200")
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    assert runner.machine().endswith(" cores")
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda,cpu")
+    assert runner.gpu_models() == ["NVIDIA H100 80GB HBM3"] * 2 + ["NVIDIA H200"]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert runner.gpu_models() == []
+    monkeypatch.setattr(runner, "NVIDIA_DRIVER_GPUS", tmp_path / "absent")
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert runner.gpu_models() == []
+
+
 SWEEP_CHILD = """
 import signal, sys, time
 def stop(signum, frame):

@@ -44,10 +44,43 @@ def source_commit() -> str:
     return head + ("+dirty" if dirty else "")
 
 
+NVIDIA_DRIVER_GPUS = pathlib.Path("/proc/driver/nvidia/gpus")
+
+
+def gpu_models() -> list[str]:
+    """The models of the NVIDIA GPUs that the driver lists and JAX may use (Linux; else none).
+
+    Read from the driver's files rather than from JAX, because a parent process that starts JAX on a GPU takes
+    its memory from the sweep it launches.
+    """
+    if os.environ.get("CUDA_VISIBLE_DEVICES", None) in ("", "-1"):
+        return []
+    platforms = os.environ.get("JAX_PLATFORMS", "")
+    if platforms and not any(p in platforms for p in ("cuda", "gpu")):
+        return []
+    try:
+        gpu_dirs = sorted(NVIDIA_DRIVER_GPUS.iterdir())
+    except OSError:
+        return []
+    models = []
+    for gpu_dir in gpu_dirs:
+        try:
+            lines = (gpu_dir / "information").read_text().splitlines()
+        except OSError:
+            continue
+        models += [line.split(":", 1)[1].strip() for line in lines if line.startswith("Model:")]
+    return models
+
+
 def machine() -> str:
+    """The CPU and its usable cores, and any GPUs, as recorded beside results."""
     from tgrf_jax.cpu import cpu_model
 
-    return f"{cpu_model()}, {len(os.sched_getaffinity(0))} cores"
+    desc = f"{cpu_model()}, {len(os.sched_getaffinity(0))} cores"
+    models = gpu_models()
+    for model in dict.fromkeys(models):
+        desc += f", {models.count(model)} x {model}"
+    return desc
 
 
 def row_state(row_dir: pathlib.Path) -> str:
