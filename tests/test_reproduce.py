@@ -220,6 +220,10 @@ def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
     assert runner.reproduce(whole.shrunk(rows=["mlp"]), out, log=lines.append, report_exp=whole) == 0
     md = (out / "report.md").read_text()
     assert "Rows finished: 1/2" in md and "(55.0)" in md and "| Later |" in md
+    # --report-only exports the finished rows' policies when asked to.
+    assert main([str(tmp_path / "exp.yaml"), "--seeds", "1", "--out", str(out), "--report-only",
+                 "--export-pretrained", str(tmp_path / "again")]) == 0
+    assert sorted(p.name for p in (tmp_path / "again").iterdir()) == ["exp-mlp-crowdnav_pp", "exp-mlp-tgrf"]
     # Other settings into the same directory are refused.
     with pytest.raises(ConfigError, match="holds results of this experiment with other settings"):
         runner.reproduce(exp.shrunk(steps=512), out)

@@ -27,7 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--list", action="store_true", help="list the experiments and their rows, then exit")
     parser.add_argument("--print-plan", action="store_true",
                         help="print each row's tgrf-sweep command and state, then exit (nothing runs)")
-    parser.add_argument("--report-only", action="store_true", help="rewrite the report from finished rows and exit")
+    parser.add_argument("--report-only", action="store_true",
+                        help="rewrite the report from finished rows (and export their policies, with "
+                        "--export-pretrained), then exit")
     parser.add_argument("--export-pretrained", metavar="DIR",
                         help="export the best seed's policy of every finished row and compared value to "
                         "DIR/<experiment>-<row>-<value> (tgrf-eval --pretrained plays it)")
@@ -57,8 +59,8 @@ def main(argv: list[str] | None = None) -> int:
         if not (args.print_plan or args.report_only):
             check_jax()
             check_writable(out, "--out", directory=True)
-            if args.export_pretrained:
-                check_writable(args.export_pretrained, "--export-pretrained", directory=True)
+        if args.export_pretrained and not args.print_plan:
+            check_writable(args.export_pretrained, "--export-pretrained", directory=True)
         if args.print_plan:
             for row in exp.rows:
                 state = runner.row_state(out / row.name)
@@ -69,6 +71,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.report_only:
             for path in report.write(whole, out):
                 print(path)
+            if args.export_pretrained:
+                for row in exp.rows:
+                    if runner.row_state(out / row.name) == "done":
+                        for path in runner.export_best(exp, out, row, args.export_pretrained):
+                            print(f"exported {path}")
             return 0
         return runner.reproduce(exp, out, export_to=args.export_pretrained, report_exp=whole, layout=args.layout)
     except ConfigError as e:
