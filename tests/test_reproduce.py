@@ -193,6 +193,44 @@ def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
     assert lines == ["  mlp | update 5", "  mlp | stopped at update 7, with a checkpoint"] * 2
 
 
+def test_sigterm_to_reproduce_stops_the_sweep_with_a_checkpoint_and_records_it(tmp_path, monkeypatch):
+    # `kill` or a scheduler sends SIGTERM to tgrf-reproduce itself: like Ctrl-C, its sweep is asked to stop after
+    # the running chunk (not orphaned to die on a closed pipe) and the invocation is recorded.
+    import os
+    import signal
+
+    real_popen = runner.subprocess.Popen
+    children = []
+
+    def sweep_child(cmd, **kwargs):
+        children.append(real_popen([sys.executable, "-c", SWEEP_CHILD], **kwargs))
+        return children[-1]
+
+    monkeypatch.setattr(runner.subprocess, "Popen", sweep_child)
+    monkeypatch.setattr(runner, "source_commit", lambda: "abc")
+    exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
+    out = tmp_path / "out"
+    (out / "mlp" / "checkpoints" / "50").mkdir(parents=True)
+    (out / "mlp" / "sweep.yaml").write_text("{}")
+    lines = []
+
+    def terminate_at_first_sweep_line(line):
+        lines.append(line)
+        if line == "  mlp | update 5":
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt):
+        runner.reproduce(exp, out, log=terminate_at_first_sweep_line)
+    assert signal.getsignal(signal.SIGTERM) is before
+    assert [child.returncode for child in children] == [130]
+    assert lines[-2:] == ["  mlp | stopped at update 7, with a checkpoint",
+                          "[exp] row mlp interrupted; rerun the same command to resume"]
+    prov = json.loads((out / "mlp" / "provenance.json").read_text())
+    assert [i["exit_code"] for i in prov["invocations"]] == [130]
+    assert (out / "reproduce.log").read_text().endswith("row mlp interrupted; rerun the same command to resume\n")
+
+
 def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
     exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml"))).shrunk(seeds=1)
     out = tmp_path / "out"

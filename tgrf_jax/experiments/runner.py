@@ -8,6 +8,7 @@ process: a crash or an out-of-memory in one row leaves the others and the report
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
@@ -16,6 +17,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from typing import Callable
 
@@ -224,8 +226,27 @@ def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, expor
 
     out = pathlib.Path(out)
     check_out_dir(exp, out)
-    with exclusive(out):
+    with exclusive(out), _sigterm_as_interrupt():
         return _reproduce(exp, out, log, export_to, report_exp or exp, layout)
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM (`kill`, `timeout`, a scheduler) stops like Ctrl-C: the running row's sweep is asked to stop with a
+    checkpoint and the invocation is recorded. By default SIGTERM would end this process at once, leaving the
+    sweep to die at its next line of output on the closed pipe, without a checkpoint or a provenance entry."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: Experiment, layout) -> int:
@@ -252,7 +273,11 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
                 eta = f"; about {_fmt_duration(per_row * (len(todo) - i))} left"
             say(f"[{exp.name}] row {done + 1}/{len(exp.rows)}: {row.label} ({row.name}), "
                 f"{states[row.name]}; {_fmt_duration(time.perf_counter() - t0)} elapsed{eta}")
-            code = run_row(exp, row, out / row.name, say, layout)
+            try:
+                code = run_row(exp, row, out / row.name, say, layout)
+            except KeyboardInterrupt:
+                say(f"[{exp.name}] row {row.name} interrupted; rerun the same command to resume")
+                raise
             if code != 0:
                 say(f"[{exp.name}] row {row.name} stopped (exit code {code}); rerun the same command to resume")
                 return 130 if code in (130, -2) else code
