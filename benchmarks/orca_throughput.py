@@ -1,6 +1,7 @@
 """Throughput of ``jax.jit(jax.vmap(tgrf_jax.orca.solve))`` against Python-RVO2's doStep on this machine.
 
-    PYTHONPATH=. python benchmarks/orca_throughput.py [--quick] [--block both] [--batches 256 4096] [--out FILE]
+    PYTHONPATH=. python benchmarks/orca_throughput.py [--quick] [--block both] [--batches 256 4096] [--no-rvo2]
+        [--out FILE]
 
 Scenes are environment-like: N agents uniformly in a square whose area grows with N (about 3.2 m^2 per
 agent, i.e. a 8 m square for 20), radii U(0.3, 0.5) + 0.16, max speeds U(0.5, 1.5), random current velocities
@@ -23,7 +24,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import rvo2
 
 from tgrf_jax import configure_cpu, orca
 
@@ -89,6 +89,8 @@ def rvo2_dostep_rate(n_agents: int, n_steps: int, seed: int = 0) -> float:
     the kd-tree and LPs see fresh states) and calls doStep; the setter calls are included in the time, as an
     environment driving RVO2 from Python would pay them.
     """
+    import rvo2  # imported here so that --no-rvo2 runs where the reference is not installed
+
     pool = random_scenes(16, n_agents, seed)
     sim = rvo2.PyRVOSimulator(SETTINGS["dt"], SETTINGS["neighbor_dist"], max(n_agents - 1, 0),
                               SETTINGS["time_horizon"], SETTINGS["time_horizon"], 0.3, 1.0)
@@ -148,7 +150,15 @@ def main(argv=None) -> dict:
                         help="the solver's LP blocks: the backend's default, 128 problems (a CPU's), one block "
                              "of the whole batch (a GPU's), or both, timed one after the other per case")
     parser.add_argument("--batches", type=int, nargs="*", help="scene batch sizes of the 20-agent cases")
+    parser.add_argument("--no-rvo2", action="store_true",
+                        help="time the JAX solver only (for a machine without Python-RVO2, e.g. a GPU box)")
     args = parser.parse_args(argv)
+    if not args.no_rvo2:
+        try:
+            import rvo2  # noqa: F401
+        except ImportError:
+            parser.error("Python-RVO2 (module rvo2, the package pyrvo2-danieldugas) is not installed; install it "
+                         "or pass --no-rvo2 to time the JAX solver alone")
     configure_cpu()  # 512-bit vectors on AVX-512, as the command-line tools use
 
     if args.quick:
@@ -176,7 +186,7 @@ def main(argv=None) -> dict:
             print(f"{kind:>9} {n:>6} {batch:>6} {name:>6} {100 * r['lp3_share']:>6.1f} {r['compile_s']:>10.1f} "
                   f"{1e3 * r['median_s']:>10.2f} {r['scenes_per_s']:>12.0f} {r['agent_steps_per_s']:>14.0f}",
                   flush=True)
-    for n in sorted({n for _, n, _ in cases}):
+    for n in sorted({n for _, n, _ in cases}) if not args.no_rvo2 else []:
         rate = rvo2_dostep_rate(n, rvo2_steps)
         results["rvo2"].append(dict(n_agents=n, dostep_per_s=rate, agent_steps_per_s=rate * n))
         print(f"RVO2 doStep, {n:>3} agents: {rate:>10.0f} steps/s ({rate * n:.0f} agent-steps/s), one core")
