@@ -231,6 +231,59 @@ def test_sigterm_to_reproduce_stops_the_sweep_with_a_checkpoint_and_records_it(t
     assert (out / "reproduce.log").read_text().endswith("row mlp interrupted; rerun the same command to resume\n")
 
 
+TRAINING_CHILD = """
+import pathlib, sys, time
+from tgrf_jax.cli.common import progress_line
+from tgrf_jax.train.stop import stop_requests
+with stop_requests() as stop:
+    for update in range(1, 600):
+        time.sleep(0.1)
+        progress_line(f"update {update}")
+        if stop:
+            pathlib.Path(sys.argv[1]).write_text(f"checkpoint at update {update} after {stop.signal_name}")
+            progress_line("stopped with a checkpoint")
+            sys.exit(130)
+"""
+
+REPRODUCE_PARENT = """
+import pathlib, sys
+from tgrf_jax.experiments import runner, spec
+child, marker = sys.argv[3], sys.argv[4]
+real_popen = runner.subprocess.Popen
+runner.source_commit = lambda: "abc"
+runner.subprocess.Popen = lambda cmd, **kwargs: real_popen([sys.executable, "-c", child, marker], **kwargs)
+exp = spec.load(sys.argv[1])
+runner.run_row(exp, exp.rows[0], pathlib.Path(sys.argv[2]), lambda line: print(line, flush=True))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's prctl")
+def test_a_sweep_whose_reproduce_is_killed_stops_with_a_checkpoint(tmp_path):
+    # tgrf-reproduce killed outright (SIGKILL, the OOM killer): its sweep is told to stop after the running chunk,
+    # and neither that signal nor its next progress line on the closed pipe kills it before the checkpoint.
+    import signal
+    import subprocess
+    import time
+
+    marker = tmp_path / "checkpoint"
+    parent = subprocess.Popen(
+        [sys.executable, "-c", REPRODUCE_PARENT, str(write_experiment(tmp_path / "exp.yaml")), str(tmp_path / "row"),
+         TRAINING_CHILD, str(marker)], stdout=subprocess.PIPE, text=True)
+    try:
+        for line in parent.stdout:
+            if "| update 2" in line:
+                break
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=30)
+        deadline = time.monotonic() + 60
+        while not marker.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert marker.read_text().startswith("checkpoint at update ")
+        assert marker.read_text().endswith("after SIGTERM")
+    finally:
+        parent.kill()
+
+
 def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
     exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml"))).shrunk(seeds=1)
     out = tmp_path / "out"

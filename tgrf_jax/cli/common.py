@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import pathlib
 import sys
 
@@ -78,6 +79,20 @@ def scenario(source: str | None, overrides: list[str], tool: str, pretrained: st
         config = TrainConfig.from_dict(data)  # a tgrf-train config: every section checked, env / reward played
         return Scenario(config.env, config.reward)
     return Scenario(EnvConfig.from_dict(data.get("env")), reward_config_from_dict(data.get("reward")))
+
+
+def progress_line(message: str) -> None:
+    """Print a line of training progress. If the reader of stdout has gone (tgrf-reproduce killed, `| head`
+    closed), training goes on without it rather than dying between checkpoints: the run directory's
+    progress.log keeps every line."""
+    try:
+        print(message, flush=True)
+    except BrokenPipeError:
+        stdout, stderr = os.fstat(1), os.fstat(2)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        if (stdout.st_dev, stdout.st_ino) == (stderr.st_dev, stderr.st_ino):  # one pipe for both (tgrf-reproduce)
+            os.dup2(devnull, 2)
 
 
 def error(tool: str, e: Exception, hint: str | None = None) -> int:

@@ -8,7 +8,9 @@ import os
 import pathlib
 import sys
 
-from tgrf_jax.cli.common import add_config_args, check_jax, check_writable, checkpoint_error, error, start
+from tgrf_jax.cli.common import (
+    add_config_args, check_jax, check_writable, checkpoint_error, error, progress_line, start,
+)
 from tgrf_jax.config import ConfigError, griddable_fields
 
 
@@ -128,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         run_sweep(None if args.resume else spec, sweep_dir, resume=bool(args.resume), from_step=args.from_step,
-                  log=lambda m: print(m, flush=True), num_devices=args.devices,
+                  log=progress_line, num_devices=args.devices,
                   export_checkpoints=not args.no_run_checkpoints, layout=layout if args.resume else None)
     except CheckpointError as e:
         return checkpoint_error("tgrf-sweep", e, f"tgrf-sweep --resume {sweep_dir} --from-step")

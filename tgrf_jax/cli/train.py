@@ -6,7 +6,9 @@ import argparse
 import pathlib
 import sys
 
-from tgrf_jax.cli.common import add_config_args, check_jax, check_writable, checkpoint_error, error, start, train_config
+from tgrf_jax.cli.common import (
+    add_config_args, check_jax, check_writable, checkpoint_error, error, progress_line, start, train_config,
+)
 from tgrf_jax.config import ConfigError
 
 
@@ -59,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         train_run(config, run_dir, resume=bool(args.resume), from_step=args.from_step,
-                  log=lambda m: print(m, flush=True))
+                  log=progress_line)
     except CheckpointError as e:
         return checkpoint_error("tgrf-train", e, f"tgrf-train --resume {run_dir} --from-step")
     except ConfigError as e:

@@ -9,6 +9,7 @@ process: a crash or an out-of-memory in one row leaves the others and the report
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import datetime
 import json
 import os
@@ -31,6 +32,7 @@ from tgrf_jax.files import write_atomic
 EXPERIMENT_FILE = "experiment.yaml"
 PROVENANCE_FILE = "provenance.json"
 LOG_FILE = "reproduce.log"
+PR_SET_PDEATHSIG = 1  # from <sys/prctl.h>
 
 
 def source_commit() -> str:
@@ -141,6 +143,15 @@ def _stop_child(proc: subprocess.Popen, relay: Callable[[], None]) -> None:
         raise
 
 
+def _stop_with_parent() -> None:
+    """In the sweep child, before it starts (Linux): SIGTERM when tgrf-reproduce dies, even by SIGKILL, so the
+    sweep stops after its running chunk with a checkpoint rather than training on unattended and unrecorded."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
+
+
 def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None],
             layout: str | None = None) -> int:
     """Train (or resume) one row as a tgrf-sweep child process; returns its exit code. `layout`: a new row's
@@ -158,7 +169,8 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     prov = json.loads(prov_path.read_text()) if prov_path.is_file() else {"wall_s": 0.0, "invocations": []}
     started, commit = time.perf_counter(), source_commit()  # the code the sweep imports now, not at its end
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                            preexec_fn=_stop_with_parent if sys.platform.startswith("linux") else None)
 
     def relay_output():
         for line in proc.stdout:

@@ -46,9 +46,13 @@ def stop_requests(enabled: bool = True) -> Iterator[StopRequest]:
             raise KeyboardInterrupt
         if not request:
             request.signal_name = name
-            # os.write, not print: the handler may run while the main thread is inside a print
-            os.write(2, f"\n{name}: stopping after the running chunk, with a checkpoint"
-                        f"{' (Ctrl-C again: at once)' if signum == signal.SIGINT else ''}\n".encode())
+            # os.write, not print: the handler may run while the main thread is inside a print; and a reader that
+            # has gone (the parent that sent this signal) must not turn the stop into a crash
+            try:
+                os.write(2, f"\n{name}: stopping after the running chunk, with a checkpoint"
+                            f"{' (Ctrl-C again: at once)' if signum == signal.SIGINT else ''}\n".encode())
+            except OSError:
+                pass
 
     previous = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
