@@ -245,8 +245,8 @@ def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, expor
 @contextlib.contextmanager
 def _sigterm_as_interrupt():
     """SIGTERM (`kill`, `timeout`, a scheduler) stops like Ctrl-C: the running row's sweep is asked to stop with a
-    checkpoint and the invocation is recorded. By default SIGTERM would end this process at once, leaving the
-    sweep to die at its next line of output on the closed pipe, without a checkpoint or a provenance entry."""
+    checkpoint, its last lines are logged and the invocation is recorded. By default SIGTERM would end this
+    process at once, before any of that."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
