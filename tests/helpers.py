@@ -1,12 +1,20 @@
 """Shared test helpers: small environments and hand-built states."""
 
 import os
+import signal
+import threading
 
 import jax
 import jax.numpy as jnp
 
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax.env import EnvState, Humans, Robot
+
+
+def signal_this_thread(sig: int) -> None:
+    """Send `sig` to the calling thread: its handler has run when this returns. (A signal sent to the process
+    may be taken by another of its threads, XLA's or JAX's, and reach Python's handler only later.)"""
+    signal.pthread_kill(threading.get_ident(), sig)
 
 
 def cpu_devices_env(n: int) -> dict:

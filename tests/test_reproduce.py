@@ -10,6 +10,7 @@ import sys
 import pytest
 import yaml
 
+from helpers import signal_this_thread
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import report, runner
 from tgrf_jax.experiments import spec as spec_lib
@@ -196,7 +197,6 @@ def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):
 def test_sigterm_to_reproduce_stops_the_sweep_with_a_checkpoint_and_records_it(tmp_path, monkeypatch):
     # `kill` or a scheduler sends SIGTERM to tgrf-reproduce itself: like Ctrl-C, its sweep is asked to stop after
     # the running chunk (not orphaned to die on a closed pipe) and the invocation is recorded.
-    import os
     import signal
 
     real_popen = runner.subprocess.Popen
@@ -217,7 +217,7 @@ def test_sigterm_to_reproduce_stops_the_sweep_with_a_checkpoint_and_records_it(t
     def terminate_at_first_sweep_line(line):
         lines.append(line)
         if line == "  mlp | update 5":
-            os.kill(os.getpid(), signal.SIGTERM)
+            signal_this_thread(signal.SIGTERM)
 
     before = signal.getsignal(signal.SIGTERM)
     with pytest.raises(KeyboardInterrupt):

@@ -1,17 +1,17 @@
 """tgrf_jax.train.stop: which signals ask for a stop between chunks, which stop at once, and what is left alone
 (the training loop's side, a checkpoint and a bit-identical resume: tests/test_train_cli.py)."""
 
-import os
 import signal
 import threading
 
 import pytest
 
+from helpers import signal_this_thread
 from tgrf_jax.train.stop import stop_requests
 
 
 def _send(sig):
-    os.kill(os.getpid(), sig)
+    signal_this_thread(sig)
 
 
 def test_first_ctrl_c_is_a_request_and_the_second_stops_at_once(capfd):

@@ -14,7 +14,7 @@ import time
 import jax
 import pytest
 
-from helpers import CompileCounter, flip_a_bit
+from helpers import CompileCounter, flip_a_bit, signal_this_thread
 
 from tgrf_jax.cli import eval_main, train_main
 from tgrf_jax.train.checkpoint import CheckpointError
@@ -150,7 +150,7 @@ def test_sigterm_stops_after_the_chunk_with_a_checkpoint_and_resume_is_bit_ident
     def signal_during_update_2(line):  # update 2 is no checkpoint update (checkpoint_every 4)
         lines.append(line)
         if "update 2]" in line:
-            os.kill(os.getpid(), signum)
+            signal_this_thread(signum)
 
     with pytest.raises(KeyboardInterrupt):
         train_run(config, run, log=signal_during_update_2)
