@@ -88,6 +88,10 @@ def test_cli_errors(tmp_path, capsys):
     assert "has no row 'nope'; rows: mlp" in capsys.readouterr().err
     assert main([str(path), "--steps", "0"]) == 2
     assert "--steps = 0 must be >= 1" in capsys.readouterr().err
+    assert main([str(path), "--report-only", "--out", str(tmp_path / "none")]) == 2
+    assert f"--out '{tmp_path / 'none'}' does not exist: no rows to report" in capsys.readouterr().err
+    assert main([str(path), "--report-only", "--export-pretrained", "/proc/none"]) == 2
+    assert "--export-pretrained '/proc/none' is not writable" in capsys.readouterr().err
 
 
 def test_report_cells_from_evals(tmp_path):

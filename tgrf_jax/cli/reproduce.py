@@ -69,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{row.name} [{state}]: {cmd}")
             return 0
         if args.report_only:
+            if not out.is_dir():
+                raise ConfigError(f"--out {str(out)!r} does not exist: no rows to report (tgrf-reproduce "
+                                  f"{args.experiment} --out {out} trains them)")
             for path in report.write(whole, out):
                 print(path)
             if args.export_pretrained:
