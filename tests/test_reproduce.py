@@ -110,6 +110,10 @@ def test_report_cells_from_evals(tmp_path):
         w = csv.writer(f)
         w.writerow(fields)
         w.writerows(rows)
+    (row_dir / "provenance.json").write_text(json.dumps({"wall_s": 90.0, "invocations": [
+        {"commit": "aaa", "machine": "CPU, 16 cores, 1 x GPU", "exit_code": 130, "finished": "t1"},
+        {"commit": "bbb", "machine": "CPU, 2 cores", "exit_code": 130, "finished": "t2"},
+        {"commit": "ccc", "machine": "CPU, 16 cores, 1 x GPU", "exit_code": 0, "finished": "t3"}]}))
     records = report.collect(exp, tmp_path / "out")
     cnpp, tgrf = records
     assert cnpp["sr_mean"] == pytest.approx(60.0) and cnpp["sr_std"] == pytest.approx(14.142, abs=1e-3)
@@ -118,6 +122,9 @@ def test_report_cells_from_evals(tmp_path):
     table = report.format_table(exp, records)
     assert "| With TGRF | MLP | 85.0 ± 7.1 (50.0 ± 5.0) | 90.0 (55.0) | 16.00 (20.00) |" in table
     assert "| crowdnav_pp | MLP | 60.0 ± 14.1 |" in table
+    assert cnpp["commit"] == "ccc"  # the CSV's commit: the last invocation's
+    assert ("| mlp | 1.5 min | 3 | aaa to ccc | CPU, 16 cores, 1 x GPU; CPU, 2 cores | t3 |"
+            in report.format_report(exp, tmp_path / "out", records))
 
 
 def test_row_states(tmp_path):

@@ -66,9 +66,16 @@ def _provenance(row_dir: pathlib.Path) -> dict:
     if not path.is_file():
         return {}
     prov = json.loads(path.read_text())
-    last = prov["invocations"][-1] if prov.get("invocations") else {}
-    return {"row_wall_s": prov.get("wall_s"), "commit": last.get("commit"), "machine": last.get("machine"),
-            "finished": last.get("finished")}
+    invocations = prov.get("invocations") or []
+    last = invocations[-1] if invocations else {}
+
+    def distinct(key):  # in order of first use: a row may train over several commits and machines
+        return list(dict.fromkeys(i[key] for i in invocations if i.get(key)))
+
+    commits = distinct("commit")
+    return {"row_wall_s": prov.get("wall_s"), "commit": last.get("commit"), "finished": last.get("finished"),
+            "invocations": len(invocations), "machines": "; ".join(distinct("machine")),
+            "commits": commits[0] if len(commits) < 2 else f"{commits[0]} to {commits[-1]}"}
 
 
 def collect(exp: Experiment, out: pathlib.Path) -> list[dict]:
@@ -84,7 +91,7 @@ def collect(exp: Experiment, out: pathlib.Path) -> list[dict]:
             rec = {"experiment": exp.name, "row": row.name, "label": row.label, "axis": axis, "value": str(value),
                    **ours, **{f"paper_{k}": v for k, v in paper.items()}}
             rec.update({k: prov.get(k) for k in ("row_wall_s", "commit")})
-            rec["_machine"], rec["_finished"] = prov.get("machine"), prov.get("finished")
+            rec.update({f"_{k}": prov.get(k) for k in ("invocations", "commits", "machines", "finished")})
             records.append(rec)
     return records
 
@@ -164,14 +171,15 @@ def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> st
                     parts += ["", f"![{row.label}: {fig}]({row.name}_{fig})"]
     prov = [r for r in records if r.get("commit")]
     if prov:
-        parts += ["", "| row | wall time | commit | machine | finished |", "|---|---|---|---|---|"]
+        parts += ["", "| row | wall time | invocations | commits | machines | finished |", "|---|---|---|---|---|---|"]
         seen = set()
         for r in prov:
             if r["row"] in seen:
                 continue
             seen.add(r["row"])
             wall = r["row_wall_s"] or 0.0
-            parts.append(f"| {r['row']} | {wall / 60:.1f} min | {r['commit']} | {r['_machine']} | {r['_finished']} |")
+            parts.append(f"| {r['row']} | {wall / 60:.1f} min | {r['_invocations']} | {r['_commits']} | {r['_machines']} "
+                         f"| {r['_finished']} |")
     if exp.notes:
         parts += ["", exp.notes.strip()]
     return "\n".join(parts) + "\n"
