@@ -75,10 +75,8 @@ def main(argv: list[str] | None = None) -> int:
             for path in report.write(whole, out):
                 print(path)
             if args.export_pretrained:
-                for row in exp.rows:
-                    if runner.row_state(out / row.name) == "done":
-                        for path in runner.export_best(exp, out, row, args.export_pretrained):
-                            print(f"exported {path}")
+                for path in runner.export_finished(exp, out, args.export_pretrained):
+                    print(f"exported {path}")
             return 0
         return runner.reproduce(exp, out, export_to=args.export_pretrained, report_exp=whole, layout=args.layout)
     except ConfigError as e:

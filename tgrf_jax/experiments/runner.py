@@ -228,6 +228,12 @@ def _provenance_commit(row_dir: pathlib.Path) -> str | None:
     return invocations[-1].get("commit")
 
 
+def export_finished(exp: Experiment, out: pathlib.Path, dest_root) -> list[pathlib.Path]:
+    """`export_best` for every finished row of `exp`; returns the exported directories."""
+    return [path for row in exp.rows if row_state(out / row.name) == "done"
+            for path in export_best(exp, out, row, dest_root)]
+
+
 def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, export_to=None,
               report_exp: Experiment | None = None, layout: str | None = None) -> int:
     """Run every unfinished row of `exp` into `out`, rewriting the report after each row; returns an exit code.
@@ -296,10 +302,8 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
             paths = report.write(report_exp, out)
             say(f"[{exp.name}] row {row.name} done; report: {', '.join(str(p) for p in paths)}")
         if export_to is not None:
-            for row in exp.rows:
-                if row_state(out / row.name) == "done":
-                    for path in export_best(exp, out, row, export_to):
-                        say(f"[{exp.name}] exported {path}")
+            for path in export_finished(exp, out, export_to):
+                say(f"[{exp.name}] exported {path}")
         say(f"[{exp.name}] all {len(exp.rows)} rows done")
         return 0
     finally:
