@@ -5,6 +5,7 @@ import dataclasses
 import json
 import math
 import pathlib
+import subprocess
 import sys
 
 import pytest
@@ -168,6 +169,41 @@ signal.signal(signal.SIGTERM, stop)
 print("update 5", flush=True)
 time.sleep(120)
 """
+
+
+def test_commit_is_dirty_for_code_changes_only(tmp_path):
+    """Rows write their results into the checkout they run from; only changes to what the training imports or
+    reads (package, configs, pyproject.toml) make the recorded commit '+dirty'."""
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                       check=True, capture_output=True)
+
+    files = ["tgrf_jax/env.py", "configs/default.yaml", "pyproject.toml", "docs/results.md",
+             "tgrf_jax/pretrained/old/meta.json"]
+    for name in files:
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text("0\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "init")
+    clean = runner.source_commit(tmp_path)
+    assert len(clean) == 12 and "+" not in clean
+
+    (tmp_path / "docs/results.md").write_text("1\n")  # a row's report
+    (tmp_path / "docs/new_row").mkdir()
+    (tmp_path / "docs/new_row/evals.csv").write_text("1\n")
+    (tmp_path / "tgrf_jax/pretrained/old/meta.json").write_text("1\n")  # a re-exported policy
+    (tmp_path / "tgrf_jax/pretrained/new").mkdir()
+    (tmp_path / "tgrf_jax/pretrained/new/meta.json").write_text("1\n")
+    assert runner.source_commit(tmp_path) == clean
+
+    for change in ("tgrf_jax/env.py", "configs/default.yaml", "pyproject.toml", "tgrf_jax/new_module.py"):
+        (tmp_path / change).write_text("2\n")
+        assert runner.source_commit(tmp_path) == clean + "+dirty", change
+        git("checkout", "-q", "--", ".")
+        (tmp_path / "tgrf_jax/new_module.py").unlink(missing_ok=True)
+        assert runner.source_commit(tmp_path) == clean
+    assert runner.source_commit(tmp_path / "docs" / "new_row" / "not_a_dir") == "unknown"
 
 
 def test_an_interrupted_row_invocation_is_recorded(tmp_path, monkeypatch):

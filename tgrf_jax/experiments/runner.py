@@ -35,14 +35,20 @@ LOG_FILE = "reproduce.log"
 PR_SET_PDEATHSIG = 1  # from <sys/prctl.h>
 
 
-def source_commit() -> str:
-    """The git commit of the code that runs (with '+dirty' for uncommitted changes), or 'unknown'."""
-    root = pathlib.Path(__file__).resolve().parents[2]
+# What a training run imports or reads. Results written into the checkout (docs/, exported policies under
+# tgrf_jax/pretrained/) are not code: they must not mark every row trained from a working tree as '+dirty'.
+CODE_PATHSPEC = ("tgrf_jax", "configs", "pyproject.toml", ":(exclude)tgrf_jax/pretrained")
+
+
+def source_commit(root: pathlib.Path | None = None) -> str:
+    """The git commit of the code that runs, with '+dirty' when the package, the configs or pyproject.toml have
+    uncommitted changes (new files included), or 'unknown' outside a git checkout."""
+    root = pathlib.Path(__file__).resolve().parents[2] if root is None else root
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"], capture_output=True,
                               text=True, timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=all", "--",
+                                *CODE_PATHSPEC], capture_output=True, text=True, timeout=10, check=True).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return head + ("+dirty" if dirty else "")
