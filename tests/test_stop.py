@@ -14,7 +14,16 @@ def _send(sig):
     signal_this_thread(sig)
 
 
-def test_first_ctrl_c_is_a_request_and_the_second_stops_at_once(capfd):
+@pytest.fixture
+def ctrl_c_enabled():
+    """SIGINT as an interactive Python process has it: a suite started in the background of a non-interactive
+    shell inherits an ignored SIGINT, which stop_requests rightly leaves ignored."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_first_ctrl_c_is_a_request_and_the_second_stops_at_once(capfd, ctrl_c_enabled):
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     with pytest.raises(KeyboardInterrupt):
         with stop_requests() as stop:
