@@ -158,7 +158,7 @@ def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> st
     done = sorted({r["row"] for r in records if "sr_mean" in r})
     parts = [f"# {exp.title}", "",
              f"Rows finished: {len(done)}/{len(exp.rows)}; {exp.seeds} seeds per cell; compared inside each row: "
-             f"`{exp.column_axis}` = {', '.join(map(str, exp.column_values))}."]
+             + " x ".join(f"`{name}` = {', '.join(map(str, exp.axis_values(name)))}" for name in exp.grid_names) + "."]
     if exp.layout == "table":
         parts += ["", "Each cell: ours (the paper's). SR mean ± sample std over seeds; SR, NT, PL and ITR of the best seed. "
                   "ITR is the reference's itr_future; ITR disc is the share of steps with the nearest human closer "

@@ -68,9 +68,15 @@ class Experiment:
     @property
     def column_values(self) -> tuple:
         """Values of the compared axis over all rows, in order of first appearance."""
+        return self.axis_values(self.column_axis)
+
+    def axis_values(self, name: str) -> tuple:
+        """Values of one grid axis over all rows, in order of first appearance."""
         seen = []
         for row in self.rows:
-            seen += [v for v in row.grid[0][1] if v not in seen]
+            for axis, values in row.grid:
+                if axis == name:
+                    seen += [v for v in values if v not in seen]
         return tuple(seen)
 
     def column_label(self, value) -> str:
