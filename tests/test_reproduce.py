@@ -345,6 +345,7 @@ def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
     out = tmp_path / "out"
     lines = []
     assert runner.reproduce(exp, out, log=lines.append, export_to=tmp_path / "pretrained") == 0
+    assert "1 rows x 2 reward.scheme values x 1 seeds; 0 rows already done" in lines[0]
     for scheme in ("crowdnav_pp", "tgrf"):
         meta = json.loads((tmp_path / "pretrained" / f"exp-mlp-{scheme}" / "meta.json").read_text())
         assert meta["reward.scheme"] == scheme and meta["seed"] == 0 and 0.0 <= meta["test"]["success_rate"] <= 1.0

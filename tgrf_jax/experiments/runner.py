@@ -284,9 +284,9 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
     try:
         states = {r.name: row_state(out / r.name) for r in exp.rows}
         todo = [r for r in exp.rows if states[r.name] != "done"]
-        say(f"[{exp.name}] {exp.title}: {len(exp.rows)} rows x {len(exp.column_values)} "
-            f"{exp.column_axis} values x {exp.seeds} seeds; {len(exp.rows) - len(todo)} rows already done; "
-            f"results in {out}")
+        axes = " x ".join(f"{len(exp.axis_values(name))} {name}" for name in exp.grid_names)
+        say(f"[{exp.name}] {exp.title}: {len(exp.rows)} rows x {axes} values x {exp.seeds} seeds; "
+            f"{len(exp.rows) - len(todo)} rows already done; results in {out}")
         report.write(report_exp, out)
         t0 = time.perf_counter()
         for i, row in enumerate(todo):
