@@ -6,6 +6,8 @@ import threading
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
 
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax.env import EnvState, Humans, Robot
@@ -99,13 +101,31 @@ class CompileCounter:
         return False
 
 
+def _read_arrays(item_dir):
+    with ocp.PyTreeCheckpointer() as checkpointer:
+        return jax.tree_util.tree_leaves(checkpointer.restore(item_dir))
+
 
 def flip_a_bit(step_dir):
-    """Flip one bit in the middle of the largest array data file of a checkpoint step (what a failing disk does);
-    returns that file."""
-    data = max((p for p in (step_dir / "default").rglob("*") if p.is_file() and p.parent.name == "d"),
-               key=lambda p: p.stat().st_size)
+    """Flip one bit of a checkpoint step's largest array data file so that the step still reads, with other
+    values: what a failing disk does unnoticed, so only the step's checksum can catch it. Returns that file.
+
+    The file holds the arrays' compressed chunks in an order that varies from one save to the next, and a bit
+    flipped in a chunk's header makes the step unreadable instead; so bits are tried from the middle on until one
+    changes values and leaves the step readable."""
+    item = step_dir / "default"
+    before = _read_arrays(item)
+    data = max((p for p in item.rglob("*") if p.is_file() and p.parent.name == "d"), key=lambda p: p.stat().st_size)
     raw = bytearray(data.read_bytes())
-    raw[len(raw) // 2] ^= 0x10
+    for offset in range(len(raw) // 2, len(raw), 61):
+        raw[offset] ^= 0x10
+        data.write_bytes(bytes(raw))
+        try:
+            after = _read_arrays(item)
+        except Exception:  # unreadable: try the next bit
+            after = None
+        if after is not None and any(not np.array_equal(a, b) for a, b in zip(before, after)):
+            return data
+        raw[offset] ^= 0x10
     data.write_bytes(bytes(raw))
-    return data
+    raise AssertionError(f"no bit of {data} could be flipped without making the step unreadable")
