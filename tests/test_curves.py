@@ -4,6 +4,8 @@ import csv
 import json
 import pathlib
 
+import jax
+import numpy as np
 import pytest
 
 from tgrf_jax.cli import eval_main
@@ -26,26 +28,37 @@ def read(path):
 @pytest.fixture(scope="module")
 def curve_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("curve") / "run"
-    train_run(TrainConfig.from_yaml(TINY, CURVE_SETS), out, log=lambda m: None)
-    return out
+    return train_run(TrainConfig.from_yaml(TINY, CURVE_SETS), out, log=lambda m: None)
 
 
 def test_test_episodes_every_eval_every_updates(curve_run):
-    rows = read(curve_run / "eval_curve.csv")
+    rows = read(curve_run.run_dir / "eval_curve.csv")
     assert [int(r["update"]) for r in rows] == [4, 8, 12]
     assert [int(r["env_steps"]) for r in rows] == [512, 1024, 1536]
     for r in rows:
         assert int(r["episodes"]) == 8 and 0.0 <= float(r["success_rate"]) <= 1.0
         rates = sum(float(r[k]) for k in ("success_rate", "collision_rate", "timeout_rate"))
         assert rates == pytest.approx(1.0)
-    assert (curve_run / "eval_curve.png").stat().st_size > 10_000
+    assert (curve_run.run_dir / "eval_curve.png").stat().st_size > 10_000
+
+
+def test_periodic_evaluation_leaves_training_unchanged(curve_run, tmp_path):
+    # The evaluations cut the chunk plan at their period and draw their own episodes: the trained state must be
+    # the one a run without them reaches, bit for bit.
+    sets = [s for s in CURVE_SETS if not s.startswith("run.eval_every")] + ["run.eval_every=0"]
+    plain = train_run(TrainConfig.from_yaml(TINY, sets), tmp_path / "plain", log=lambda m: None)
+    assert not (tmp_path / "plain" / "eval_curve.csv").exists()
+    got, want = jax.tree_util.tree_leaves(curve_run.state), jax.tree_util.tree_leaves(plain.state)
+    assert len(got) == len(want)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_curve_point_equals_tgrf_eval_of_the_same_checkpoint(curve_run, tmp_path):
     out = tmp_path / "eval.json"
-    assert eval_main([str(curve_run), "--step", "8", "--episodes", "8", "--seed", "0", "--out", str(out)]) == 0
+    assert eval_main([str(curve_run.run_dir), "--step", "8", "--episodes", "8", "--seed", "0", "--out", str(out)]) == 0
     evaluated = json.loads(out.read_text())["results"]["learned"]
-    row = next(r for r in read(curve_run / "eval_curve.csv") if r["update"] == "8")
+    row = next(r for r in read(curve_run.run_dir / "eval_curve.csv") if r["update"] == "8")
     for k in CURVE_METRICS:
         expected = evaluated[k]
         assert (row[k] == "nan") if expected is None else float(row[k]) == pytest.approx(expected, rel=1e-12), k
@@ -57,7 +70,7 @@ def test_resumed_run_has_the_same_curve(curve_run, tmp_path):
     train_run(config, out, log=lambda m: None, stop_after_updates=6)
     assert [r["update"] for r in read(out / "eval_curve.csv")] == ["4"]
     train_run(config, out, resume=True, log=lambda m: None)
-    assert read(out / "eval_curve.csv") == read(curve_run / "eval_curve.csv")
+    assert read(out / "eval_curve.csv") == read(curve_run.run_dir / "eval_curve.csv")
 
 
 def test_sweep_writes_curves_of_every_run(tmp_path):
