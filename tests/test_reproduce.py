@@ -132,7 +132,8 @@ def test_report_header_names_every_compared_axis(tmp_path):
     exp = spec_lib.load(str(write_experiment(
         tmp_path / "exp.yaml", layout="heatmap", columns={},
         grid={"reward.h_disc": [0.625, 2.5], "reward.sigma_disc": [0.1, 0.5]},
-        rows=[{"name": "a", "label": "A"}, {"name": "b", "label": "B", "grid": {"reward.h_disc": [5.0], "reward.sigma_disc": [0.1]}}])))
+        rows=[{"name": "a", "label": "A"},
+              {"name": "b", "label": "B", "grid": {"reward.h_disc": [5.0], "reward.sigma_disc": [0.1]}}])))
     md = report.format_report(exp, tmp_path / "out", [])
     assert "compared inside each row: `reward.h_disc` = 0.625, 2.5, 5.0 x `reward.sigma_disc` = 0.1, 0.5." in md
 
