@@ -136,6 +136,12 @@ def test_report_header_names_every_compared_axis(tmp_path):
               {"name": "b", "label": "B", "grid": {"reward.h_disc": [5.0], "reward.sigma_disc": [0.1]}}])))
     md = report.format_report(exp, tmp_path / "out", [])
     assert "compared inside each row: `reward.h_disc` = 0.625, 2.5, 5.0 x `reward.sigma_disc` = 0.1, 0.5." in md
+    for row in ("a", "b"):  # finished rows: the progress header is all that runs
+        (tmp_path / "out" / row).mkdir(parents=True)
+        (tmp_path / "out" / row / "evals.csv").write_text("run,point,seed,reward.h_disc,reward.sigma_disc\n")
+    lines = []
+    assert runner.reproduce(exp, tmp_path / "out", log=lines.append) == 0
+    assert "2 rows x 3 reward.h_disc x 2 reward.sigma_disc values x 2 seeds; 2 rows already done" in lines[0]
 
 
 def test_row_states(tmp_path):
