@@ -13,7 +13,7 @@ import jax
 
 
 def machine_info() -> dict:
-    from tgrf_jax.cpu import cpu_model
+    from tgrf_jax.runtime.cpu import cpu_model
 
     return {
         "cpu": cpu_model(),

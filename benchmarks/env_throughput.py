@@ -27,9 +27,8 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.common import machine_info, time_call, write_json
-from tgrf_jax import CrowdNavEnv
+from tgrf_jax import CrowdNavEnv, configure_cpu
 from tgrf_jax.policies import StraightPolicy
-from tgrf_jax import configure_cpu
 
 ENV_AXIS = "envs"
 
@@ -94,7 +93,7 @@ def time_from_mid_crossing(run, obs, state, repeats: int) -> tuple[float, float]
 
 def gst_flops_per_env_step(num_humans: int) -> float:
     """FLOPs of one learned-predictor call (one env, one step) as XLA's cost analysis counts them."""
-    from tgrf_jax.predictor import predict, pretrained
+    from tgrf_jax.env.gst import predict, pretrained
 
     pos = jnp.zeros((num_humans, 5, 2))
     compiled = jax.jit(predict).lower(pretrained("orca"), pos, jnp.ones((num_humans, 5), bool)).compile()
@@ -124,7 +123,8 @@ def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int
         row[name] = batch * n_steps / run_s
     d = 0 if mesh is None else mesh.devices.size
     if d > 1 and batch % d == 0 and batch // d >= 16:
-        from jax.sharding import NamedSharding, PartitionSpec as P
+        from jax.sharding import NamedSharding
+        from jax.sharding import PartitionSpec as P
 
         run = make_sharded_runner(env, n_steps, batch // d // 8, mesh)
         placed = jax.device_put((obs, state), NamedSharding(mesh, P(ENV_AXIS)))

@@ -1,4 +1,4 @@
-"""Throughput of ``jax.jit(jax.vmap(tgrf_jax.orca.solve))`` against Python-RVO2's doStep on this machine.
+"""Throughput of ``jax.jit(jax.vmap(tgrf_jax.env.orca.solve))`` against Python-RVO2's doStep on this machine.
 
     PYTHONPATH=. python benchmarks/orca_throughput.py [--quick] [--block both] [--batches 256 4096] [--no-rvo2]
         [--out FILE]
@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tgrf_jax import configure_cpu, orca
+from tgrf_jax import configure_cpu
+from tgrf_jax.env import orca
 
 SETTINGS = dict(time_horizon=5.0, dt=0.25, neighbor_dist=10.0)
 

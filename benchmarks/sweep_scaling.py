@@ -33,9 +33,9 @@ from jax import monitoring
 from benchmarks.common import machine_info, write_json
 from tgrf_jax import configure_cpu
 from tgrf_jax import sweep as sweep_lib
-from tgrf_jax.sweep import program as sweep_program
 from tgrf_jax.config import TrainConfig, apply_overrides, load_yaml
-from tgrf_jax.train.loop import train_run
+from tgrf_jax.sweep import program as sweep_program
+from tgrf_jax.train.run_dir import train_run
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"

@@ -25,11 +25,12 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from benchmarks.common import machine_info, time_call, write_json
-from tgrf_jax.config import TrainConfig
-from tgrf_jax.nets.hh_attn import HH_ATTN_SIZES
 from tgrf_jax import configure_cpu
+from tgrf_jax.config import TrainConfig
+from tgrf_jax.policies.nets.hh_attn import HH_ATTN_SIZES
 from tgrf_jax.train import make_train, shards
 from tgrf_jax.train.ppo import Transition, ppo_loss
 
@@ -89,14 +90,15 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
     jax.block_until_ready(state)
     steps = num_envs * num_steps * updates
 
+    n = np.int32(updates)
     start = time.perf_counter()
-    chunk = t.run_chunk.lower(state, updates).compile()
+    chunk = t.run_chunk.lower(state, n).compile()
     compile_s = time.perf_counter() - start
-    jax.block_until_ready(chunk(state))  # warm-up
+    state, _ = jax.block_until_ready(chunk(state, n))  # warm-up; the chunk consumes its state, so it is threaded
     runs = []
     for _ in range(repeats):
         start = time.perf_counter()
-        jax.block_until_ready(chunk(state))
+        state, _ = jax.block_until_ready(chunk(state, n))
         runs.append(time.perf_counter() - start)
     run_s = sorted(runs)[len(runs) // 2]
     out = {

@@ -41,7 +41,7 @@ def pytest_configure(config):
     if "TGRF_JAX_COMPILE_CACHE" not in os.environ:
         _OWNED_CACHE = tempfile.mkdtemp(prefix="tgrf-jax-tests-")
         os.environ["TGRF_JAX_COMPILE_CACHE"] = _OWNED_CACHE
-    from tgrf_jax import compile_cache
+    from tgrf_jax.runtime import compile_cache
 
     compile_cache.enable()
 

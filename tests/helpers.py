@@ -10,6 +10,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from tgrf_jax import CrowdNavEnv
+from tgrf_jax.config import TrainConfig
 from tgrf_jax.env import EnvState, Humans, Robot
 
 
@@ -22,6 +23,20 @@ def signal_this_thread(sig: int) -> None:
 def cpu_devices_env(n: int) -> dict:
     """XLA_FLAGS for a subprocess with n CPU devices, keeping the suite's other XLA settings (tests/conftest.py)."""
     return {"XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={n}"}
+
+
+def tiny_config(**sections) -> TrainConfig:
+    """A training config that compiles and runs in seconds: 8 envs x 8 steps, 4 updates, no humans, small MLP.
+    `sections` update its sections, e.g. tiny_config(ppo={"num_steps": 12})."""
+    base = {
+        "env": {"num_humans": 0, "predictor": "none"},
+        "network": {"name": "mlp", "size": "small"},
+        "ppo": {"num_envs": 8, "num_steps": 8, "total_steps": 8 * 8 * 4, "update_epochs": 2, "num_minibatches": 2,
+                "num_shards": 1},
+    }
+    for k, v in sections.items():
+        base.setdefault(k, {}).update(v)
+    return TrainConfig.from_dict(base)
 
 
 def make_env(**overrides) -> CrowdNavEnv:

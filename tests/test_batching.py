@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tgrf_jax.batching import cond_gathered
 from tgrf_jax.env import scenario
+from tgrf_jax.env.batching import cond_gathered
 from tgrf_jax.env.sensing import sort_order
 
 

@@ -1,15 +1,16 @@
 """Checkpoints: a checksum of every step's content verified on restore, the damaged step and the intact earlier ones
-named, steps that do not fit the config described, zero-size arrays, steps written before checksums."""
+named, steps that do not fit the config described, zero-size arrays, steps without a checksum refused."""
 
 import pathlib
+import shutil
 
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-
-from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer, tree_digest
 from helpers import flip_a_bit
+
+from tgrf_jax.storage.checkpoint import Checkpointer, CheckpointError, tree_digest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -36,25 +37,31 @@ def test_restore_returns_what_was_saved_zero_size_arrays_included(saved):
     assert tree_digest(saved.restore(template, 4)) == tree_digest(state(4))
 
 
-def test_a_flipped_bit_is_an_error_naming_the_step_and_the_intact_ones(saved):
-    flip_a_bit(saved.path(12))
-    flip_a_bit(saved.path(4))
-    with pytest.raises(CheckpointError, match=r"/12' \(step 12\) is damaged: its content does not match the "
-                                              r"checksum written with it; intact earlier steps: 0, 8") as e:
+def overwrite(step_dir):
+    for f in step_dir.rglob("*"):
+        if f.is_file():
+            f.write_bytes(b"garbage")
+
+
+def drop_digest(step_dir):
+    """A flipped bit in a step whose checksum was deleted: without the check it would restore other values."""
+    flip_a_bit(step_dir)
+    shutil.rmtree(step_dir / "digest")
+
+
+@pytest.mark.parametrize("damage, reason", [
+    (flip_a_bit, "its content does not match the checksum written with it"),  # reads, with other values
+    (overwrite, r"it cannot be read \(.*\)"),
+    (drop_digest, r"its checksum \(digest/\) is missing, so its content cannot be verified"),
+])
+def test_a_damaged_step_is_an_error_naming_the_step_and_the_intact_ones(saved, damage, reason):
+    damage(saved.path(12))
+    flip_a_bit(saved.path(4))  # an earlier damaged step is not offered as intact
+    message = rf"/12' \(step 12\) is damaged: {reason}; intact earlier steps: 0, 8$"
+    with pytest.raises(CheckpointError, match=message) as e:
         saved.restore(state(0))
     assert (e.value.step, e.value.intact) == (12, (0, 8))
     assert tree_digest(saved.restore(state(0), 8)) == tree_digest(state(8))
-
-
-def test_unreadable_steps_are_damaged_too(saved):
-    for f in saved.path(12).rglob("*"):
-        if f.is_file():
-            f.write_bytes(b"garbage")
-    flip_a_bit(saved.path(0))
-    with pytest.raises(CheckpointError, match=r"\(step 12\) is damaged: it cannot be read .*intact earlier steps: 4, "
-                                              r"8$") as e:
-        saved.restore(state(0))
-    assert e.value.intact == (4, 8)
 
 
 def test_a_step_that_does_not_fit_says_what_it_holds(saved):
@@ -77,7 +84,7 @@ def test_delete_after_and_missing_steps(saved):
         saved.restore(state(0), 8)
 
 
-def test_steps_written_before_checksums_restore_and_mix_with_new_ones(tmp_path):
+def test_a_step_without_a_checksum_is_refused_not_restored_unverified(tmp_path):
     def plain(step):
         return state(step)["params"]
 
@@ -86,10 +93,13 @@ def test_steps_written_before_checksums_restore_and_mix_with_new_ones(tmp_path):
     legacy.wait_until_finished()
     legacy.close()
     ckpt = Checkpointer(tmp_path)
-    assert tree_digest(ckpt.restore(plain(0))) == tree_digest(plain(2))
+    with pytest.raises(CheckpointError, match=r"/2' \(step 2\) is damaged: its checksum \(digest/\) is missing, so "
+                                              r"its content cannot be verified; no earlier step is intact$"):
+        ckpt.restore(plain(0))
     ckpt.save(4, plain(4))  # a resumed run goes on writing verified steps
     assert tree_digest(ckpt.restore(plain(0))) == tree_digest(plain(4))
-    assert tree_digest(ckpt.restore(plain(0), 2)) == tree_digest(plain(2))
+    with pytest.raises(CheckpointError, match=r"\(step 2\) is damaged: its checksum"):
+        ckpt.restore(plain(0), 2)
     ckpt.close()
 
 
@@ -111,7 +121,7 @@ def test_a_writer_removes_the_leftover_of_a_save_killed_mid_commit(saved):
 def test_a_run_without_humans_checkpoints_and_resumes(tmp_path):
     """env.num_humans = 0 is allowed (an empty crowd): its states hold zero-size arrays, which orbax cannot store."""
     from tgrf_jax.config import TrainConfig
-    from tgrf_jax.train.loop import restore_run, train_run
+    from tgrf_jax.train.run_dir import restore_run, train_run
 
     config = TrainConfig.from_yaml(ROOT / "configs" / "tiny.yaml", ["env.num_humans=0", "run.eval_episodes=0"])
     first = train_run(config, tmp_path / "run", log=lambda m: None, stop_after_updates=0)

@@ -1,4 +1,4 @@
-"""The persistent compilation cache of the command-line tools (tgrf_jax.compile_cache), each case in a fresh
+"""The persistent compilation cache of the command-line tools (tgrf_jax.runtime.compile_cache), each case in a fresh
 process: the cache is process-global JAX state."""
 
 import json
@@ -14,7 +14,7 @@ from jax import monitoring
 hits = []
 monitoring.register_event_listener(
     lambda event, **_: hits.append(event) if event == "/jax/compilation_cache/cache_hits" else None)
-from tgrf_jax import compile_cache
+from tgrf_jax.runtime import compile_cache
 
 path = compile_cache.enable()
 x = jax.jit(lambda a: jnp.tanh(a) @ a.T + jnp.cos(a).sum())(jnp.arange(12.0).reshape(3, 4) / 7)

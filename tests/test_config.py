@@ -2,13 +2,18 @@ import pathlib
 import re
 
 import pytest
+from helpers import CompileCounter
 
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax.config import (
-    ConfigError, EnvConfig, RewardConfig, TrainConfig, apply_overrides, load_yaml, reward_config_from_dict,
+    ConfigError,
+    EnvConfig,
+    RewardConfig,
+    TrainConfig,
+    apply_overrides,
+    load_yaml,
+    reward_config_from_dict,
 )
-
-from helpers import CompileCounter
 
 CONFIGS = pathlib.Path(__file__).resolve().parents[1] / "configs"
 

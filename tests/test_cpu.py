@@ -8,7 +8,7 @@ import sys
 
 import jax
 
-from tgrf_jax import cpu
+from tgrf_jax.runtime import cpu
 
 AVX512_CPUINFO = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512dq\n"
 AVX2_CPUINFO = "processor\t: 0\nflags\t\t: fpu sse2 avx2 fma\n"

@@ -11,7 +11,7 @@ import pytest
 from tgrf_jax.cli import eval_main
 from tgrf_jax.config import TrainConfig
 from tgrf_jax.train.curves import CURVE_METRICS
-from tgrf_jax.train.loop import train_run
+from tgrf_jax.train.run_dir import train_run
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -84,3 +84,20 @@ def test_sweep_writes_curves_of_every_run(tmp_path):
     for run in {r["run"] for r in rows}:
         assert len(read(tmp_path / "sweep" / "runs" / run / "eval_curve.csv")) == 3
     assert (tmp_path / "sweep" / "eval_curves.png").stat().st_size > 10_000
+
+
+def test_a_run_compiles_its_training_program_once(tmp_path, monkeypatch):
+    # log, checkpoint and evaluation periods that all differ cut the run into chunks of 1, 2 and 3 updates; the
+    # update count is traced, so the update is traced (and its program compiled) once for all of them
+    from tgrf_jax.train.ppo import Trainer
+
+    traces = []
+    real_update = Trainer.update
+    monkeypatch.setattr(Trainer, "update", lambda self, ts: traces.append(1) or real_update(self, ts))
+    sets = ["run.log_every=2", "run.checkpoint_every=3", "run.eval_every=5", "run.curve_episodes=8",
+            "run.eval_episodes=0"]
+    result = train_run(TrainConfig.from_yaml(TINY, sets), tmp_path / "run", log=lambda m: None)
+    assert result.updates == 12
+    assert len(read(tmp_path / "run" / "metrics.csv")) == 9  # chunks ending at 2, 3, 4, 5, 6, 8, 9, 10, 12
+    assert result.compiled_chunks == 1
+    assert len(traces) == 1

@@ -2,8 +2,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from helpers import hand_state, make_env, rollout, to_goal
+
 from tgrf_jax.env import COLLISION, RUNNING, SUCCESS, TIMEOUT
 
 

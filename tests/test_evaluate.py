@@ -3,9 +3,9 @@ import math
 import jax
 import numpy as np
 import pytest
-
 from helpers import make_env
-from tgrf_jax.evaluate import evaluate, format_table, run_episodes
+
+from tgrf_jax.evaluate import evaluate, format_table
 from tgrf_jax.policies import OrcaPolicy, StraightPolicy, baseline
 
 

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tgrf_jax.nets import make_network
-from tgrf_jax.nets.frames import action_to_world, to_goal_frame
 from tests.test_nets import random_obs
+from tgrf_jax.policies.nets import make_network
+from tgrf_jax.policies.nets.frames import action_to_world, to_goal_frame
 
 
 def rotate(v, angle):

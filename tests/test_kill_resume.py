@@ -19,12 +19,11 @@ import subprocess
 import sys
 
 import pytest
-
 from helpers import CompileCounter
 
 from tgrf_jax.cli import sweep_main, train_main
-from tgrf_jax.train.checkpoint import tree_digest
-from tgrf_jax.train.loop import restore_run
+from tgrf_jax.storage.checkpoint import tree_digest
+from tgrf_jax.train.run_dir import restore_run
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -45,7 +44,7 @@ def die(*args, **kwargs):
     os.kill(os.getpid(), signal.SIGKILL)
 
 if when == "first-save":
-    from tgrf_jax.train.checkpoint import Checkpointer
+    from tgrf_jax.storage.checkpoint import Checkpointer
     Checkpointer.save = die
 elif when.startswith("commit:"):
     step, rename = when.split(":")[1], os.rename
@@ -57,7 +56,7 @@ elif when.startswith("commit:"):
     os.rename = commit
 elif when == "final-evaluation":
     from tgrf_jax.sweep.program import SweepBatch
-    from tgrf_jax.train.loop import SoloProgram
+    from tgrf_jax.train.run_dir import SoloProgram
     SoloProgram.evaluate = SweepBatch.evaluate = die
 from tgrf_jax.cli import sweep_main, train_main
 sys.exit({"train": train_main, "sweep": sweep_main}[tool](argv))

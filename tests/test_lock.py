@@ -8,12 +8,12 @@ import time
 import pytest
 
 from tgrf_jax.config import ConfigError, TrainConfig
-from tgrf_jax.train.lock import OWNER_FILE, exclusive
-from tgrf_jax.train.loop import train_run
+from tgrf_jax.storage.lock import OWNER_FILE, exclusive
+from tgrf_jax.train.run_dir import train_run
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
-HOLD = "import sys, time; from tgrf_jax.train.lock import exclusive\nwith exclusive(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)"
+HOLD = "import sys, time; from tgrf_jax.storage.lock import exclusive\nwith exclusive(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)"
 
 
 @pytest.fixture
@@ -56,7 +56,7 @@ def test_the_lock_goes_with_its_process(held):
 
 
 def test_resume_of_a_run_stopped_before_its_first_checkpoint_starts_from_scratch(tmp_path):
-    from tgrf_jax.train.loop import params_digest
+    from tgrf_jax.storage.checkpoint import tree_digest as params_digest
 
     config = TrainConfig.from_yaml(TINY, ["run.eval_episodes=0"])
     fresh = train_run(config, tmp_path / "fresh", log=lambda m: None)

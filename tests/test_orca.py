@@ -1,4 +1,4 @@
-"""Fidelity of tgrf_jax.orca against Python-RVO2 (the reference implementation of the same algorithm).
+"""Fidelity of tgrf_jax.env.orca against Python-RVO2 (the reference implementation of the same algorithm).
 
 Run ``PYTHONPATH=. python tests/test_orca.py`` to print the error distribution (JSON) for an issue note.
 """
@@ -20,9 +20,16 @@ import rvo2  # noqa: F401  (a test dependency: fail loudly if missing)
 
 sys.path.insert(0, os.path.dirname(__file__))
 from rvo2_reference import (  # noqa: E402
-    ENV_SETTINGS, Scene, error_summary, make_sim, pref_towards, random_scene, rvo2_step)
+    ENV_SETTINGS,
+    Scene,
+    error_summary,
+    make_sim,
+    pref_towards,
+    random_scene,
+    rvo2_step,
+)
 
-from tgrf_jax import orca  # noqa: E402
+from tgrf_jax.env import orca  # noqa: E402
 
 TOL = 1e-3  # m/s
 SPEED_RTOL = 2e-4  # results on the max-speed circle overshoot by float rounding, in RVO2 too

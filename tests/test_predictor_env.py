@@ -4,12 +4,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from helpers import hand_state, make_env
-from tgrf_jax import predictor
+
 from tgrf_jax.config import ConfigError, EnvConfig
+from tgrf_jax.env import gst as predictor
 from tgrf_jax.env import sensing
-from tgrf_jax.predictor import history as gst_history
+from tgrf_jax.env.gst import history as gst_history
 
 
 def constant_step_params(step_xy):

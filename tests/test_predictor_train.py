@@ -1,5 +1,6 @@
 """Predictor data, loss, training (bit-identical resume), evaluation and the `tgrf-predictor` command."""
 
+import dataclasses
 import json
 import re
 
@@ -8,11 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tgrf_jax import predictor
+from tgrf_jax.cli import predictor as cli
+from tgrf_jax.env import gst as predictor
+from tgrf_jax.env.gst.model import StepGaussians, step_gaussians
 from tgrf_jax.predictor import data as data_lib
 from tgrf_jax.predictor import train as train_lib
-from tgrf_jax.cli import predictor as cli
-from tgrf_jax.predictor.model import StepGaussians, step_gaussians
 
 
 def synthetic(b=5, t=40, n=3, seed=0):
@@ -231,3 +232,61 @@ def test_cli_rejects_parameters_that_do_not_fit(tmp_path, capsys):
         cli.main(["eval", "--dataset", str(tmp_path / "d.npz"), "--params", str(tmp_path / "p.npz")])
     err = capsys.readouterr().err
     assert "p.npz" in err and "do not fit the GST model" in err
+
+
+def test_a_run_is_resumed_only_as_itself(tmp_path):
+    """--updates below the run's progress, another dataset with the same recorded config, a second writer and a
+    directory of another tool are refused before anything is written; --from-step goes back to a checkpoint."""
+    from tgrf_jax.config import ConfigError
+    from tgrf_jax.storage.lock import exclusive
+
+    dataset = synthetic()
+    config = train_lib.TrainConfig(updates=4, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2,
+                                   eval_windows=8)
+    run = tmp_path / "run"
+    full, _ = train_lib.train(config, dataset, run, log=lambda s: None)
+    run_json = (run / "run.json").read_text()
+    short = train_lib.TrainConfig(**{**dataclasses.asdict(config), "updates": 2})
+    with pytest.raises(train_lib.CheckpointError, match=r"--updates 2 is below the progress of .*run': its checkpoint "
+                                                        r"of update 4 would be labelled 2; .*--from-step N"):
+        train_lib.train(short, dataset, run, log=lambda s: None)
+    # --from-step 2 goes back: the run trained to 2 again, labelled 2, the later checkpoint deleted
+    two, meta = train_lib.train(short, dataset, run, log=lambda s: None, from_step=2)
+    assert meta["train"]["updates"] == 2 and sorted(p.name for p in (run / "checkpoints").iterdir()) == ["2"]
+    again, _ = train_lib.train(config, dataset, run, log=lambda s: None)  # and on to 4, as the first time
+    for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(again)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    other = synthetic(seed=1)
+    other["config"] = dataset["config"]  # same recorded config, other content
+    with pytest.raises(train_lib.CheckpointError, match=r"was trained on another dataset \(content SHA-256"):
+        train_lib.train(config, other, run, log=lambda s: None)
+    with exclusive(run):
+        with pytest.raises(ConfigError, match=r"is being written by another process"):
+            train_lib.train(config, dataset, run, log=lambda s: None)
+    assert (run / "run.json").read_text().replace('"updates": 2', '"updates": 4') == run_json
+
+    train_run = tmp_path / "train_run"  # what tgrf-train leaves
+    (train_run / "checkpoints").mkdir(parents=True)
+    (train_run / "config.yaml").write_text("ppo: {}\n")
+    with pytest.raises(train_lib.CheckpointError, match=r"holds config.yaml but no run.json: it is not a "
+                                                        r"tgrf-predictor run directory"):
+        train_lib.train(config, dataset, train_run, log=lambda s: None)
+    assert sorted(p.name for p in train_run.iterdir()) == ["checkpoints", "config.yaml"]
+
+
+def test_a_non_finite_loss_stops_training_and_keeps_the_checkpoints(tmp_path, monkeypatch):
+    dataset = synthetic()
+    config = train_lib.TrainConfig(updates=6, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2,
+                                   eval_windows=8)
+    real = train_lib.train_chunk
+
+    def diverging(state, data, index, config, length):
+        state, loss = real(state, data, index, config, length)
+        return state, loss if int(state.step) < 4 else jnp.float32(np.nan)
+
+    monkeypatch.setattr(train_lib, "train_chunk", diverging)
+    with pytest.raises(train_lib.TrainingError, match=r"the training loss is nan in the updates 3..4: .* the "
+                                                      r"checkpoints up to update 2 in .* are kept"):
+        train_lib.train(config, dataset, tmp_path / "run", log=lambda s: None)
+    assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir()) == ["2"]

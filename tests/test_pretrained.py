@@ -9,7 +9,7 @@ import pytest
 from tgrf_jax import pretrained
 from tgrf_jax.cli import eval_main, render_main
 from tgrf_jax.config import ConfigError, TrainConfig
-from tgrf_jax.train.loop import train_run
+from tgrf_jax.train.run_dir import train_run
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")

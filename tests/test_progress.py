@@ -4,9 +4,16 @@ import csv
 
 import pytest
 
+from tgrf_jax.train.outer_loop import chunk_plan
 from tgrf_jax.train.ppo import METRIC_NAMES, SUMMED_METRICS
-from tgrf_jax.train.progress import CSV_FIELDS, ChunkMetrics, CsvWriter, combine_runs, csv_row, run_rows
-from tgrf_jax.train.runner import chunk_plan
+from tgrf_jax.train.progress import (
+    CSV_FIELDS,
+    ChunkMetrics,
+    CsvWriter,
+    combine_runs,
+    csv_row,
+    run_rows,
+)
 
 
 def _metrics(scale: float) -> dict:
@@ -42,7 +49,103 @@ def test_csv_writer_appends_and_truncates_to_a_checkpoint(tmp_path):
     assert float(rows[0]["loss"]) == _metrics(2.0)["loss"]  # run 1's row
     assert writer.truncate(4) == 4.0  # the kept rows' last wall_s: where the resumed clock continues
     assert [int(r["update"]) for r in csv.DictReader(open(path))] == [2, 4]
-    assert CsvWriter(tmp_path / "none.csv", run_rows(0)).truncate(4) == 0.0
+    assert CsvWriter(tmp_path / "none.csv", run_rows(0)).truncate(0) == 0.0
+    assert CsvWriter(tmp_path / "none.csv", run_rows(0), every_chunk=False).truncate(4) == 0.0  # (eval curves)
+
+
+def _written(path, updates=(2, 4, 6, 8)) -> list[str]:
+    writer = CsvWriter(path, run_rows(0))
+    for update in updates:
+        writer(10 * update, _chunk(update, [_metrics(1.0)]))
+    writer.close()
+    return path.read_text().splitlines(keepends=True)
+
+
+def _torn(lines):
+    return lines[:-1] + [lines[-1][:25]]
+
+
+def _repeated(lines):
+    return lines + lines[1:3]  # rows of updates 2 and 4 once more
+
+
+def _non_utf8(lines):
+    return [lines[0], lines[1][:10] + "\udcff" + lines[1][10:]] + lines[2:]
+
+
+def _headerless(lines):
+    return lines[1:]
+
+
+def _short_row(lines):
+    return lines[:2] + [lines[2].rsplit(",", 3)[0] + "\n"] + lines[3:]
+
+
+def _word_value(lines):
+    return lines[:2] + [lines[2].replace(",", ",abc,", 1).replace(",", "", 1)] + lines[3:]
+
+
+def _out_of_order(lines):
+    return [lines[0], lines[2], lines[1]] + lines[3:]
+
+
+def _same_update_other_values(lines):
+    return lines[:3] + [lines[2].replace(",", ",9", 2)] + lines[3:]
+
+
+def _emptied(lines):
+    return []
+
+
+def _deleted(lines):
+    return None
+
+
+# A metrics.csv corrupted in each way, then cut back to the checkpoint of update 6: repaired (the kept updates)
+# or refused (a ConfigError naming the file and the line).
+CSV_CORRUPTIONS = {
+    "torn last line": (_torn, "repaired", [2, 4, 6]),
+    "rows repeated": (_repeated, "repaired", [2, 4, 6]),
+    "not UTF-8": (_non_utf8, "refused", "is damaged: line 2 is not UTF-8 text"),
+    "headerless": (_headerless, "refused", "is damaged: line 1 is not its header (expected update,env_steps"),
+    "a field missing": (_short_row, "refused", "is damaged: line 3: 15 fields instead of 18"),
+    "a word for a number": (_word_value, "refused", "is damaged: line 3: update = '4abc' is not a number"),
+    "updates out of order": (_out_of_order, "refused", "is damaged: line 3: its update 2 comes after update 4"),
+    "an update twice, other values": (_same_update_other_values, "refused", "line 4: it repeats update 4 with other"),
+    "emptied": (_emptied, "refused", "holds no rows, but the run resumes from its checkpoint of update 6"),
+    "deleted": (_deleted, "refused", "is missing, but the run resumes from its checkpoint of update 6: its rows "
+                "cannot be rebuilt"),
+}
+
+
+@pytest.mark.parametrize("case", list(CSV_CORRUPTIONS))
+def test_a_damaged_csv_is_repaired_or_refused_on_resume_never_kept(case, tmp_path):
+    import re
+
+    from tgrf_jax.config import ConfigError
+
+    damage, outcome, expected = CSV_CORRUPTIONS[case]
+    path = tmp_path / "metrics.csv"
+    lines = damage(_written(path))
+    if lines is None:
+        path.unlink()
+    else:
+        path.write_bytes("".join(lines).encode("utf-8", "surrogateescape"))
+    writer = CsvWriter(path, run_rows(0))
+    if outcome == "refused":
+        before = path.read_bytes() if path.exists() else None
+        with pytest.raises(ConfigError, match=re.escape(expected)) as e:
+            writer.truncate(6)
+        assert "\n" not in str(e.value) and str(path) in str(e.value)
+        assert (path.read_bytes() if path.exists() else None) == before  # nothing the user had is lost
+        return
+    assert writer.truncate(6) == 6.0
+    writer(80, _chunk(8, [_metrics(1.0)]))  # the resumed run's next row lands on a line of its own
+    writer.close()
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["update"]) for r in rows] == expected + [8]
+    assert all(None not in r and len(r) == len(CSV_FIELDS) for r in rows)
 
 
 def test_chunk_plan_cuts_at_every_period():

@@ -6,13 +6,11 @@ import pathlib
 import jax
 import numpy as np
 import pytest
+from helpers import CompileCounter
 from matplotlib.colors import to_rgba
 from PIL import Image
 
-from helpers import CompileCounter
-
-from tgrf_jax import CrowdNavEnv
-from tgrf_jax import render
+from tgrf_jax import CrowdNavEnv, render
 from tgrf_jax.cli.render import main as render_main
 from tgrf_jax.env import OUTCOME_NAMES
 from tgrf_jax.evaluate import evaluate
@@ -202,7 +200,7 @@ def test_cli_records_long_renders_in_batches(tmp_path, capsys, monkeypatch, env,
 
 def test_cli_renders_run_dir(tmp_path, capsys):
     from tgrf_jax.config import TrainConfig
-    from tgrf_jax.train.loop import train_run
+    from tgrf_jax.train.run_dir import train_run
 
     config = TrainConfig.from_yaml(ROOT / "configs" / "tiny.yaml", ["env.time_limit=5"])
     run_dir = tmp_path / "run"

@@ -10,12 +10,12 @@ import sys
 
 import pytest
 import yaml
-
 from helpers import signal_this_thread
+
+from tgrf_jax.cli.reproduce import main
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import report, runner
 from tgrf_jax.experiments import spec as spec_lib
-from tgrf_jax.cli.reproduce import main
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -138,7 +138,9 @@ def test_report_header_names_every_compared_axis(tmp_path):
     assert "compared inside each row: `reward.h_disc` = 0.625, 2.5, 5.0 x `reward.sigma_disc` = 0.1, 0.5." in md
     for row in ("a", "b"):  # finished rows: the progress header is all that runs
         (tmp_path / "out" / row).mkdir(parents=True)
-        (tmp_path / "out" / row / "evals.csv").write_text("run,point,seed,reward.h_disc,reward.sigma_disc\n")
+        (tmp_path / "out" / row / "evals.csv").write_text("run,point,seed,reward.h_disc,reward.sigma_disc,"
+                                                          "success_rate\nr0,0,0,0.625,0.1,0.5\n")
+        (tmp_path / "out" / row / "provenance.json").write_text(FINISHED)
     lines = []
     assert runner.reproduce(exp, tmp_path / "out", log=lines.append) == 0
     assert "2 rows x 3 reward.h_disc x 2 reward.sigma_disc values x 2 seeds; 2 rows already done" in lines[0]
@@ -152,8 +154,88 @@ def test_row_states(tmp_path):
     assert runner.row_state(row) == "stale"
     (row / "checkpoints" / "4").mkdir(parents=True)
     assert runner.row_state(row) == "resumable"
-    (row / "evals.csv").write_text("run\n")
+    (row / "evals.csv").write_text("run,seed,success_rate\nr0,0,0.5\n")
+    assert runner.row_state(row) == "damaged"  # no invocation recorded as finished
+    (row / "provenance.json").write_text(FINISHED)
     assert runner.row_state(row) == "done"
+
+
+FINISHED = json.dumps({"wall_s": 1.0, "invocations": [{"commit": "c", "exit_code": 0, "finished": "t"}]})
+SWEEP_OF_TWO = "runs: [{name: r0}, {name: r1}]\n"
+EVALS = "run,point,seed,reward.scheme,success_rate,nav_time\nr0,0,0,tgrf,0.5,{nt}\nr1,0,1,tgrf,{sr},20.0\n"
+
+
+@pytest.mark.parametrize("evals, sweep, provenance, problem", [
+    (EVALS.format(nt="18.0", sr="0.7"), SWEEP_OF_TWO, FINISHED, None),
+    (EVALS.format(nt="nan", sr="0.7"), SWEEP_OF_TWO, FINISHED, None),  # no success: no navigation time
+    (EVALS.split("\n")[0] + "\n", SWEEP_OF_TWO, FINISHED, "evals.csv holds 0 runs, its sweep 2"),
+    (EVALS.format(nt="18.0", sr="0.7"), "runs: [{name: r0}]\n", FINISHED, "evals.csv holds 2 runs, its sweep 1"),
+    (EVALS.format(nt="18.0", sr="0.7x"), SWEEP_OF_TWO, FINISHED, "line 3: success_rate = '0.7x' is not a finite"),
+    (EVALS.format(nt="18.0", sr=""), SWEEP_OF_TWO, FINISHED, "line 3: success_rate = '' is not a finite number"),
+    (EVALS.format(nt="1x", sr="0.7"), SWEEP_OF_TWO, FINISHED, "line 2: nav_time = '1x' is not a number"),
+    (EVALS.format(nt="18.0", sr="0.7").replace("r1,0,1", "r1,0,one"), SWEEP_OF_TWO, FINISHED,
+     "line 3: seed = 'one' is not a whole number"),
+    (EVALS.format(nt="18.0", sr="0.7"), SWEEP_OF_TWO, FINISHED.replace('"exit_code": 0', '"exit_code": null'),
+     "provenance.json does not record the invocation that finished it"),
+])
+def test_a_row_is_done_only_with_whole_results_and_their_provenance(tmp_path, evals, sweep, provenance, problem):
+    row = tmp_path / "mlp"
+    (row / "checkpoints" / "4").mkdir(parents=True)
+    (row / "sweep.yaml").write_text(sweep)
+    (row / "evals.csv").write_text(evals)
+    (row / "provenance.json").write_text(provenance)
+    assert runner.row_state(row) == ("done" if problem is None else "damaged")
+    if problem is not None:
+        assert problem in runner.row_problem(row)
+
+
+def test_a_damaged_row_is_reported_as_damaged_never_averaged(tmp_path):
+    exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
+    row = tmp_path / "out" / "mlp"
+    row.mkdir(parents=True)
+    (row / "sweep.yaml").write_text(SWEEP_OF_TWO)
+    (row / "provenance.json").write_text(FINISHED)
+    (row / "evals.csv").write_text(EVALS.format(nt="18.0", sr="abc"))  # nanmean would report seed 0 alone
+    records = report.collect(exp, tmp_path / "out")
+    assert all("sr_mean" not in r and "seeds" not in r for r in records)
+    table = report.format_table(exp, records)
+    assert ("damaged (evals.csv line 3: success_rate = 'abc' is not a finite number): rerun tgrf-reproduce exp "
+            "--rows mlp") in table
+    (row / "evals.csv").write_text(EVALS.format(nt="18.0", sr="0.7"))
+    tgrf = [r for r in report.collect(exp, tmp_path / "out") if r["value"] == "tgrf"][0]
+    assert tgrf["seeds"] == 2 and tgrf["sr_mean"] == pytest.approx(60.0)
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("provenance.json", "{not json", "provenance.json' is damaged (JSONDecodeError"),
+    ("provenance.json", '{"invocations": 3}', "provenance.json' is damaged (ValueError: no list of invocations)"),
+    ("experiment.yaml", "rows: [unclosed", "experiment.yaml' is damaged (ParserError: while parsing"),
+    ("experiment.yaml", "- a list\n", "experiment.yaml' is damaged (ValueError: not a mapping with a list of rows)"),
+])
+def test_damaged_bookkeeping_files_are_named_not_tracebacks(tmp_path, capsys, name, text, message):
+    write_experiment(tmp_path / "exp.yaml")
+    out = tmp_path / "out"
+    (out / "mlp").mkdir(parents=True)
+    (out / "experiment.yaml").write_text(yaml.safe_dump(spec_lib.load(str(tmp_path / "exp.yaml")).to_dict()))
+    (out / "mlp" / "sweep.yaml").write_text(SWEEP_OF_TWO)
+    (out / "mlp" / "evals.csv").write_text(EVALS.format(nt="18.0", sr="0.7"))
+    (out / ("mlp/" + name if name == "provenance.json" else name)).write_text(text)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert main([str(tmp_path / "exp.yaml"), "--out", str(out), "--report-only"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tgrf-reproduce: error: ") and message in err and len(err.strip().splitlines()) == 1
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_rows_without_their_experiment_file_are_not_mixed_with_another_budget(tmp_path, capsys):
+    write_experiment(tmp_path / "exp.yaml")
+    out = tmp_path / "out"
+    (out / "mlp").mkdir(parents=True)
+    (out / "mlp" / "sweep.yaml").write_text(SWEEP_OF_TWO)  # experiment.yaml deleted
+    assert main([str(tmp_path / "exp.yaml"), "--out", str(out), "--steps", "512"]) == 2
+    assert (f"'{out}' holds rows (mlp) but no experiment.yaml, so their settings are unknown"
+            in capsys.readouterr().err)
+    assert not (out / "experiment.yaml").exists()
 
 
 def test_machine_names_the_gpus_the_driver_lists_unless_jax_is_kept_off_them(tmp_path, monkeypatch):
@@ -275,6 +357,7 @@ def test_sigterm_to_reproduce_stops_the_sweep_with_a_checkpoint_and_records_it(t
     out = tmp_path / "out"
     (out / "mlp" / "checkpoints" / "50").mkdir(parents=True)
     (out / "mlp" / "sweep.yaml").write_text("{}")
+    (out / "experiment.yaml").write_text(yaml.safe_dump(exp.to_dict(), sort_keys=False))  # the row's settings
     lines = []
 
     def terminate_at_first_sweep_line(line):

@@ -11,7 +11,7 @@ from tgrf_jax import reward as R
     [(0.0, -2.500), (0.1, -2.206), (0.2, -1.516), (0.3, -0.812), (0.4, -0.338), (0.4999, -0.110)],
 )
 def test_tgrf_disc_values_match_reference(dmin, expected):
-    # SPEC B 3.1: r_disc = -2.5 exp(-d^2 / (2 * 0.2^2)) in the TGRF scheme.
+    # r_disc = -2.5 exp(-d^2 / (2 * 0.2^2)) in the TGRF scheme (paper §3.3, eq. 2; docs/reference.md, Rewards).
     p = R.reward_params("tgrf")
     assert float(R.disc_reward(jnp.float32(dmin), p)) == pytest.approx(expected, abs=1e-3)
 
@@ -34,7 +34,8 @@ def test_crowdnav_pp_linear_disc_and_potential():
 
 
 def test_tgrf_circle_is_the_tgrf_code_with_its_gaussian_off():
-    # r_disc = 10 * (dmin - 0.5) * dt with d_disc 0.5, r_col -10 and 1.5 x progress (SPEC 3.3)
+    # r_disc = 10 * (dmin - 0.5) * dt with d_disc 0.5, r_col -10 and 1.5 x progress (the TGRF code with its
+    # Gaussian off: docs/reference.md, Rewards)
     p = R.reward_params("tgrf_circle")
     assert float(R.disc_reward(jnp.float32(0.1), p)) == pytest.approx(-1.0, abs=1e-6)
     assert float(R.pot_reward(0.25, p)) == pytest.approx(0.375)

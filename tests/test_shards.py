@@ -9,12 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import cpu_devices_env
 
 from tgrf_jax.config import ConfigError, TrainConfig
 from tgrf_jax.train import make_train, shards
 from tgrf_jax.train.shards import SHARD_AXIS
-
-from helpers import cpu_devices_env
 
 
 def sharded_config(**ppo) -> TrainConfig:
@@ -64,10 +63,11 @@ def flat(tree):
 
 def train(t):
     initial = t.init(jax.random.PRNGKey(3), t.default_hparams)
+    initial_params = flat(initial.params)  # before run_chunk, which consumes (donates) the state
     state, metrics = t.run_chunk(initial, 3)
     return {
         "placement": shards.describe(2, t.trainer.mesh), "mesh_is_none": t.trainer.mesh is None,
-        "params": flat(state.params), "initial_params": flat(initial.params),
+        "params": flat(state.params), "initial_params": initial_params,
         "metrics": {k: float(v) for k, v in metrics.items()},
         "obs": np.asarray(state.obs.humans).ravel().tolist(), "obs_envs": int(state.obs.humans.shape[0]),
         "update": int(state.update),

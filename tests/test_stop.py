@@ -5,8 +5,8 @@ import signal
 import threading
 
 import pytest
-
 from helpers import signal_this_thread
+
 from tgrf_jax.train.stop import stop_requests
 
 

@@ -8,7 +8,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from helpers import CompileCounter, make_env
 
 from tgrf_jax.config import ConfigError, TrainConfig

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from typing import Any, Mapping
 
 import numpy as np
@@ -18,8 +19,19 @@ import yaml
 
 from tgrf_jax import reward as reward_lib
 from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
-    ConfigError, _coerce, _unknown_key_error, apply_overrides, check_fields, check_traced, concrete, first_where,
-    from_dict, load_yaml, spec, traced, traced_names,
+    ConfigError,
+    _coerce,
+    _unknown_key_error,
+    apply_overrides,
+    check_fields,
+    check_traced,
+    concrete,
+    first_where,
+    from_dict,
+    load_yaml,
+    spec,
+    traced,
+    traced_names,
 )
 
 __all__ = [
@@ -101,6 +113,11 @@ MAX_HUMANS = 200
 # counters, evaluation loops and recordings that end).
 MIN_DT = 0.01
 MAX_EPISODE_SECONDS = 1000.0
+# bodies and the goal tolerance in metres: a 2 m radius is already no pedestrian or robot of the paper's arena
+MAX_BODY_RADIUS = 2.0
+MAX_SENSOR_RANGE = 100.0  # edge-to-edge metres: far beyond any arena the scenarios draw
+MAX_NAME_LENGTH = 200  # with room for a sweep's run suffix within a file name's 255 bytes
+_NAME = re.compile(r"[A-Za-z0-9_.=+-]+")
 # Episodes of one evaluation: their per-episode statistics stay on the host (about 40 bytes each).
 MAX_EPISODES = 10_000_000
 
@@ -111,7 +128,7 @@ class EnvConfig:
 
     Static fields (shapes and code paths) are fixed at construction; every numeric field becomes part of the
     traced `EnvParams` (see `CrowdNavEnv.default_params`) and can be vmapped over.
-    Defaults are the paper scenario (SPEC A.1).
+    Defaults are the paper scenario (docs/reference.md, "Scenario").
     """
 
     # --- static: shapes and code paths -------------------------------------------------------------
@@ -139,14 +156,15 @@ class EnvConfig:
     circle_radius: float = traced(6.0 * math.sqrt(2.0), low=0.0, low_inclusive=False)
     spawn_noise: float = traced(2.0, low=0.0, doc="one-sided U(0, noise) added to spawn coordinates")
     spawn_clearance: float = traced(0.5, low=0.0, doc="extra gap between spawned agents")
-    robot_radius: float = traced(0.3, low=0.0, low_inclusive=False)
+    robot_radius: float = traced(0.3, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False)
     robot_v_max: float = traced(1.0, low=0.0, low_inclusive=False)
-    goal_tolerance: float = traced(0.3, low=0.0, low_inclusive=False, doc="goal reached within this distance")
-    human_radius_min: float = traced(0.3, low=0.0, low_inclusive=False)
-    human_radius_max: float = traced(0.5, low=0.0, low_inclusive=False)
+    goal_tolerance: float = traced(0.3, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False,
+                                   doc="goal reached within this distance")
+    human_radius_min: float = traced(0.3, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False)
+    human_radius_max: float = traced(0.5, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False)
     human_v_pref_min: float = traced(0.5, low=0.0, low_inclusive=False)
     human_v_pref_max: float = traced(1.5, low=0.0, low_inclusive=False)
-    sensor_range: float = traced(5.0, low=0.0, doc="edge-to-edge metres")
+    sensor_range: float = traced(5.0, low=0.0, high=MAX_SENSOR_RANGE, doc="edge-to-edge metres")
     goal_change_interval: float = traced(5.0, low=0.0, high=MAX_EPISODE_SECONDS, low_inclusive=False, doc="seconds")
     goal_change_prob: float = traced(0.5, low=0.0, high=1.0)
     intrusion_radius: float = traced(0.6, low=0.0, doc="itr_future: centre distance to a true future position")
@@ -247,7 +265,7 @@ class PPOConfig:
     """PPO settings. Shape-affecting fields (envs, steps, epochs, minibatches, total steps, switches) are static;
     the numeric ones (lr, coefficients, clip, gamma, lambda, grad norm) become the traced `HParams` pytree.
 
-    Defaults are the fast wall-clock configuration; `configs/paper_*.yaml` restores the reference (SPEC A.5).
+    Defaults are the fast wall-clock configuration; `configs/paper_*.yaml` restores the reference (docs/reference.md, "Training").
     """
 
     # --- static
@@ -358,6 +376,11 @@ class RunConfig:
 
     def __post_init__(self):
         check_fields(self, "run")
+        # the name becomes part of directory names (runs/<stamp>_<name>, a sweep's runs/<name>_p000_...)
+        if not 1 <= len(self.name) <= MAX_NAME_LENGTH or not _NAME.fullmatch(self.name) or ".." in self.name:
+            shown = repr(self.name) if len(self.name) <= 60 else repr(self.name[:60]) + f"... ({len(self.name):,} chars)"
+            raise ConfigError(f"run.name = {shown} is not allowed; allowed: 1 to {MAX_NAME_LENGTH} letters, digits "
+                              "and '_', '-', '.', '=', '+', without '..' (no path separators)")
 
 
 @dataclasses.dataclass(frozen=True)

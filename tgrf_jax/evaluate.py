@@ -1,8 +1,12 @@
-"""Batched evaluation: N distinct episodes in parallel, reduced to the metrics of SPEC A.4.
+"""Evaluation, the one place for it: N distinct episodes in parallel, reduced to the paper's metrics (success,
+collision and timeout rates, navigation time, path length, both intrusion ratios; docs/reference.md defines them).
 
-Each of the N environments plays exactly one episode from its own reset key (500 distinct scenarios by
-default, unlike the reference's 250 replayed twice). Steps continue in lock-step until every episode has
-ended; finished environments are masked out of the statistics.
+`run_episodes` is the compiled program (one episode in each of N environments, stepped in lock-step without
+auto-reset until every episode has ended; finished ones are masked out of the statistics). `evaluate` plays a
+policy in bounded batches and summarises; `evaluate_params` / `evaluate_state` evaluate a trained network (and
+baseline robots beside it) on its run's env: the final evaluation of `tgrf-train`, the periodic test curves and
+`tgrf-eval` all call them, and a sweep runs `run_episodes` vmapped over its runs. Each environment plays its own
+reset key (500 distinct scenarios by default, unlike the reference's 250 replayed twice).
 """
 
 from __future__ import annotations
@@ -17,9 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from tgrf_jax.config import MAX_EPISODES
+from tgrf_jax.config import MAX_EPISODES, TrainConfig
 from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams
-from tgrf_jax.policies import Policy
+from tgrf_jax.policies import LearnedPolicy, Policy, baseline, make_network_for
 
 
 @struct.dataclass
@@ -46,25 +50,30 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
     stats = EpisodeStats(zeros, zeros, izeros, zeros, zeros, izeros, zeros, izeros, zeros)
     alive = jnp.ones(n_episodes, bool)
     carry = policy.initialize_carry(n_episodes)
-    step_env = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+
+    def step_one(key, state, action):
+        # No auto-reset: an ended episode is masked out, so a fresh one would be computed only to be thrown away.
+        # The step key is the one `env.step` would pass on, so the episodes are those of the auto-resetting env.
+        return env.step_env(jax.random.split(key)[0], state, action, params)
+
+    step_all = jax.vmap(step_one)
 
     def body(loop):
         t, key, obs, state, carry, alive, stats = loop
         key, k_act, k_step = jax.random.split(key, 3)
         carry, action = policy.act(carry, obs, jnp.equal(t, 0) & alive, k_act)
-        obs, state, reward, terminated, truncated, info = step_env(
-            jax.random.split(k_step, n_episodes), state, action, params
-        )
+        obs, state, reward, terminated, truncated, info = step_all(jax.random.split(k_step, n_episodes), state,
+                                                                   action)
         done = terminated | truncated
-        live = alive.astype(jnp.float32)
         fut = info.intrusion_future & alive
         disc = info.intrusion_disc & alive
         stats = EpisodeStats(
             outcome=jnp.where(alive & done, info.outcome, stats.outcome),
             time=jnp.where(alive & done, info.time, stats.time),
             steps=stats.steps + alive,
-            path_length=stats.path_length + live * info.path_increment,
-            ret=stats.ret + live * reward,
+            # where, not a product with the alive mask: an ended episode keeps stepping and may produce anything
+            path_length=stats.path_length + jnp.where(alive, info.path_increment, 0.0),
+            ret=stats.ret + jnp.where(alive, reward, 0.0),
             future_steps=stats.future_steps + fut,
             future_dist_sum=stats.future_dist_sum + jnp.where(fut, info.future_dist, 0.0),
             disc_steps=stats.disc_steps + disc,
@@ -95,7 +104,7 @@ MAX_BATCH = 1000
 
 @dataclasses.dataclass(frozen=True)
 class EvalResult:
-    """Metrics of one evaluation (SPEC A.4). Times in seconds, lengths in metres, ratios in percent."""
+    """Metrics of one evaluation (docs/reference.md). Times in seconds, lengths in metres, ratios in percent."""
 
     n_episodes: int
     success_rate: float
@@ -206,3 +215,33 @@ def format_table(results: dict[str, EvalResult]) -> str:
             cells.append("n/a" if isinstance(v, float) and math.isnan(v) else fmt.format(v))
         rows.append(f"| {name} | {r.n_episodes} | " + " | ".join(cells) + " |")
     return "\n".join(rows)
+
+
+def evaluate_params(config: TrainConfig, params, episodes: int, seed: int, baselines=(), net=None,
+                    progress=None) -> dict:
+    """The deterministic policy of network `params` and optional baseline robots on `config`'s env and reward, as
+    an eval.json payload. `net` (default: built from the config) keys the compiled evaluation: pass the same one
+    to reuse it. `progress(name)` (optional) gives each policy's `evaluate` progress callback."""
+    env = CrowdNavEnv(config.env, config.reward)
+    key = jax.random.key(seed)
+    params = jax.device_get(params)  # off the shards' devices: evaluation runs on the default device
+    net = make_network_for(config) if net is None else net
+    track = (lambda name: None) if progress is None else progress
+    results = {"learned": evaluate(env, LearnedPolicy(net, params), key, episodes, progress=track("learned"))}
+    for name in baselines:
+        results[name] = evaluate(env, baseline(name), key, episodes, progress=track(name))
+    return {"env": repr(env), "episodes": episodes, "seed": seed,
+            "results": {k: v.to_dict() for k, v in results.items()}}
+
+
+def evaluate_state(config: TrainConfig, state, episodes: int, seed: int, baselines=(), net=None,
+                   progress=None) -> dict:
+    """`evaluate_params` of a training state's parameters."""
+    return evaluate_params(config, state.params, episodes, seed, baselines, net, progress)
+
+
+def format_eval(payload: dict) -> str:
+    """The Markdown table of an eval.json payload."""
+    results = {k: EvalResult(**{f: (float("nan") if v is None else v) for f, v in d.items()})
+               for k, d in payload["results"].items()}
+    return format_table(results)

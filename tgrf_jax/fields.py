@@ -13,6 +13,7 @@ import dataclasses
 import difflib
 import math
 import pathlib
+import re
 from typing import Any, Mapping
 
 import numpy as np
@@ -80,6 +81,32 @@ def describe_allowed(meta: Mapping[str, Any]) -> str:
     return " and ".join(parts) if parts else "any value"
 
 
+def _show(value, limit: int = 60) -> str:
+    """A value as an error message quotes it: a huge one cut short rather than echoed whole."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
+
+
+# PyYAML reads 1e-3 and 1e20 (no dot) as text; that form is taken as the number it means. Other text ("5" quoted,
+# "many") is not a number: quoting a value says it is text.
+_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
+def _number_text(value: str, name: str, kind: str) -> float:
+    if not _EXPONENT.fullmatch(value.strip()):
+        raise ConfigError(f"{name} = {_show(value)} must be {kind}" + (
+            " (it is quoted text; give the number without quotes)" if _looks_numeric(value) else ""))
+    return float(value)
+
+
+def _looks_numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _coerce(value, default, name: str):
     """Coerce a loaded value to the type of the field's default, rejecting lossy conversions."""
     if isinstance(default, bool):
@@ -87,32 +114,31 @@ def _coerce(value, default, name: str):
             return value
         if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no"):
             return value.lower() in ("true", "1", "yes")
-        raise ConfigError(f"{name} = {value!r} must be a boolean (true/false)")
+        raise ConfigError(f"{name} = {_show(value)} must be a boolean (true/false)")
     if isinstance(default, int):
         if isinstance(value, bool):
-            raise ConfigError(f"{name} = {value!r} must be an integer")
+            raise ConfigError(f"{name} = {_show(value)} must be an integer")
         if isinstance(value, str):
-            try:
-                value = float(value)
-            except ValueError:
-                raise ConfigError(f"{name} = {value!r} must be an integer") from None
+            value = _number_text(value, name, "an integer")
         if isinstance(value, float):
             if not value.is_integer():
-                raise ConfigError(f"{name} = {value!r} must be an integer")
+                raise ConfigError(f"{name} = {_show(value)} must be an integer")
             value = int(value)
         if not isinstance(value, int):
-            raise ConfigError(f"{name} = {value!r} must be an integer")
+            raise ConfigError(f"{name} = {_show(value)} must be an integer")
         return value
     if isinstance(default, float):
         if isinstance(value, bool):
-            raise ConfigError(f"{name} = {value!r} must be a number")
+            raise ConfigError(f"{name} = {_show(value)} must be a number")
+        if isinstance(value, str):
+            return _number_text(value, name, "a number")
         try:
             return float(value)
         except (TypeError, ValueError):
-            raise ConfigError(f"{name} = {value!r} must be a number") from None
+            raise ConfigError(f"{name} = {_show(value)} must be a number") from None
     if isinstance(default, str):
         if not isinstance(value, str):
-            raise ConfigError(f"{name} = {value!r} must be a string")
+            raise ConfigError(f"{name} = {_show(value)} must be a string")
         return value
     return value
 
@@ -127,15 +153,15 @@ def check_fields(obj, prefix: str) -> None:
             continue
         if meta.get("choices") is not None:
             if value not in meta["choices"]:
-                raise ConfigError(f"{name} = {value!r} is not allowed; allowed: {describe_allowed(meta)}")
+                raise ConfigError(f"{name} = {_show(value)} is not allowed; allowed: {describe_allowed(meta)}")
             continue
         if isinstance(value, float) and not math.isfinite(value):
-            raise ConfigError(f"{name} = {value!r} must be finite; allowed: {describe_allowed(meta)}")
+            raise ConfigError(f"{name} = {_show(value)} must be finite; allowed: {describe_allowed(meta)}")
         lo, hi = meta.get("low"), meta.get("high")
         too_low = lo is not None and (value < lo if meta["low_inclusive"] else value <= lo)
         too_high = hi is not None and (value > hi if meta["high_inclusive"] else value >= hi)
         if too_low or too_high:
-            raise ConfigError(f"{name} = {value!r} is out of range; allowed: {describe_allowed(meta)}")
+            raise ConfigError(f"{name} = {_show(value)} is out of range; allowed: {describe_allowed(meta)}")
 
 
 def concrete(value, name: str) -> np.ndarray:
@@ -180,6 +206,7 @@ def check_traced(params, config_cls, prefix: str) -> None:
 
 
 def _unknown_key_error(key: str, prefix: str, valid: list[str]) -> ConfigError:
+    key = str(key)  # a YAML key may be a number
     name = f"{prefix}.{key}" if prefix else key
     close = difflib.get_close_matches(key, valid, n=1)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -243,6 +270,8 @@ def load_yaml(path) -> dict:
         raise ConfigError(f"config file {str(path)!r} is not UTF-8 text ({e.reason} at byte {e.start})") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"config file {str(path)!r} is not valid YAML: {e}") from None
+    except RecursionError:
+        raise ConfigError(f"config file {str(path)!r} is nested too deeply to be a config") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -258,6 +287,8 @@ def parse_scalar(raw: str):
         return yaml.safe_load(raw)
     except yaml.YAMLError:
         return raw.strip()
+    except RecursionError:
+        raise ConfigError(f"value {_show(raw)} is nested too deeply to be a config value") from None
 
 
 def set_dotted(data: dict, dotted: str, value) -> dict:
@@ -287,7 +318,11 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
             raise ConfigError(f"override {item!r} must look like section.field=value")
         dotted, raw = item.split("=", 1)
         try:
-            data = set_dotted(data, dotted, parse_scalar(raw))
+            value = parse_scalar(raw)
+            # YAML drops " # ..." as a comment: "ppo.lr=1 # was 1e-3" would set 1 without a word
+            if re.search(r"(^|\s)#", raw) and not (isinstance(value, str) and "#" in value):
+                raise ConfigError("the value holds a YAML comment (' #'); give the value alone")
+            data = set_dotted(data, dotted, value)
         except ConfigError as e:
-            raise ConfigError(f"override {item!r}: {e}") from None
+            raise ConfigError(f"override {_show(item)}: {e}") from None
     return data

@@ -54,7 +54,7 @@ class RewardParams:
 # `dsrnn` is CrowdNav++ without the prediction term; `tgrf_circle` is what the TGRF authors' code runs with its
 # Gaussian turned off (danger_zone_type 'circle'): CrowdNav++'s linear r_disc, but with TGRF's r_col -10,
 # d_disc 0.5 and 1.5 x progress. The paper does not say which of the two its "without TGRF" rows used.
-# SPEC A.3 / B 3.1-3.3.
+# The reference's reward parameters (paper Secs. 3.2-3.3; docs/reference.md).
 SCHEME_DEFAULTS: dict[str, dict[str, float]] = {
     "tgrf": dict(
         r_goal=10.0, r_col=-10.0, d_disc=0.5, h_disc=2.5, sigma_disc=0.2, disc_slope=0.0,
@@ -128,7 +128,7 @@ def pred_reward(pred_hits, p: RewardParams):
 def step_reward(
     p: RewardParams, *, collided, reached, dmin, delta_d, pred_hits, delta_heading=0.0, speed=0.0
 ) -> RewardTerms:
-    """Reward of one step, evaluated on the post-step state (SPEC A.2.1).
+    """Reward of one step, evaluated on the post-step state (as the reference does).
 
     Collision beats reaching the goal; inside d_disc the danger penalty replaces the progress reward.
     r_pred is added on every step, terminal ones included, as the reference code does.

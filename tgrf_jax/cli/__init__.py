@@ -1,4 +1,5 @@
-"""The command-line tools: tgrf-train, tgrf-eval, tgrf-sweep, tgrf-render, tgrf-reproduce and tgrf-predictor, one
+"""The command-line tools: tgrf-train, tgrf-eval, tgrf-sweep, tgrf-render, tgrf-reproduce, tgrf-predictor and
+tgrf-export, one
 module each with its `main` (`common` holds the shared config / `--set` / run-directory arguments and the process
 setup). The functions below import their tool on call, so `python -m tgrf_jax.cli.<tool>` runs a module not
 imported before."""
@@ -36,5 +37,11 @@ def reproduce_main(argv=None) -> int:
 
 def predictor_main(argv=None) -> int:
     from tgrf_jax.cli.predictor import main
+
+    return main(argv)
+
+
+def export_main(argv=None) -> int:
+    from tgrf_jax.cli.export import main
 
     return main(argv)

@@ -10,7 +10,13 @@ import pathlib
 import sys
 
 from tgrf_jax.config import (
-    ConfigError, EnvConfig, RewardConfig, TrainConfig, apply_overrides, load_yaml, reward_config_from_dict,
+    ConfigError,
+    EnvConfig,
+    RewardConfig,
+    TrainConfig,
+    apply_overrides,
+    load_yaml,
+    reward_config_from_dict,
 )
 
 
@@ -60,7 +66,7 @@ def scenario(source: str | None, overrides: list[str], tool: str, pretrained: st
         config = TrainConfig.from_dict(apply_overrides(config.to_dict(), overrides))
         return Scenario(config.env, config.reward, None, config, pretrained, params)
     if source is not None and pathlib.Path(source).is_dir():
-        from tgrf_jax.train.loop import load_run_config
+        from tgrf_jax.train.run_dir import load_run_config
 
         config = load_run_config(source)
         if bad:
@@ -79,6 +85,34 @@ def scenario(source: str | None, overrides: list[str], tool: str, pretrained: st
         config = TrainConfig.from_dict(data)  # a tgrf-train config: every section checked, env / reward played
         return Scenario(config.env, config.reward)
     return Scenario(EnvConfig.from_dict(data.get("env")), reward_config_from_dict(data.get("reward")))
+
+
+def check_observation_fits(scene: Scenario) -> None:
+    """With a RUN_DIR and env.* overrides: the trained network reads observations of the run's shapes, so an
+    override that changes them (env.num_humans, the predictor's horizon, ...) is refused by name before anything
+    compiles (shapes are traced, not computed)."""
+    if scene.run_dir is None:
+        return
+    import jax
+
+    from tgrf_jax.env import CrowdNavEnv
+    from tgrf_jax.train.run_dir import load_run_config
+
+    trained = load_run_config(scene.run_dir)
+    if trained.env == scene.env:
+        return
+
+    def shapes(env_config):
+        obs = jax.eval_shape(lambda k: CrowdNavEnv(env_config, scene.reward).reset(k)[0], jax.random.key(0))
+        return {path: leaf.shape for path, leaf in jax.tree_util.tree_flatten_with_path(obs)[0]}
+
+    before, after = shapes(trained.env), shapes(scene.env)
+    if before != after:
+        changed = [f"env.{f}: {getattr(trained.env, f)!r} -> {getattr(scene.env, f)!r}"
+                   for f in trained.env.__dataclass_fields__ if getattr(trained.env, f) != getattr(scene.env, f)]
+        raise ConfigError(f"the policy in {str(scene.run_dir)!r} was trained on observations of other shapes than "
+                          f"these overrides give ({'; '.join(changed)}); with a RUN_DIR only settings that keep "
+                          "the observation's shapes can change (e.g. env.human_policy, env.dt, reward.*)")
 
 
 def progress_line(message: str) -> None:
@@ -154,8 +188,8 @@ def check_writable(path, flag: str, *, directory: bool) -> None:
 
 def start(devices: int | None = None, say_cache: bool = False) -> None:
     """Process setup before JAX starts: XLA:CPU flags (`tgrf_jax.configure_cpu`) and the compilation cache."""
-    from tgrf_jax import compile_cache
-    from tgrf_jax.cpu import configure_cpu
+    from tgrf_jax.runtime import compile_cache
+    from tgrf_jax.runtime.cpu import configure_cpu
 
     configure_cpu(devices)
     cache_dir = compile_cache.enable()

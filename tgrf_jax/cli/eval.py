@@ -1,4 +1,4 @@
-"""tgrf-eval: the SPEC A.4 metrics table of a trained policy (RUN_DIR) and / or baseline robots."""
+"""tgrf-eval: the paper's metrics table of a trained policy (RUN_DIR) and / or baseline robots."""
 
 from __future__ import annotations
 
@@ -7,8 +7,18 @@ import sys
 import time
 
 from tgrf_jax.cli.common import (
-    add_config_args, add_pretrained_arg, check_jax, check_seed, check_writable, checkpoint_error, episode_progress,
-    error, scenario, start, write_json,
+    add_config_args,
+    add_pretrained_arg,
+    check_jax,
+    check_observation_fits,
+    check_seed,
+    check_writable,
+    checkpoint_error,
+    episode_progress,
+    error,
+    scenario,
+    start,
+    write_json,
 )
 from tgrf_jax.config import MAX_EPISODES, ConfigError
 
@@ -16,7 +26,7 @@ from tgrf_jax.config import MAX_EPISODES, ConfigError
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tgrf-eval",
-        description="Evaluate a robot policy on N distinct episodes and print the SPEC A.4 metrics table. "
+        description="Evaluate a robot policy on N distinct episodes and print the paper's metrics table (docs/reference.md). "
         "With a RUN_DIR (from tgrf-train) the trained policy is evaluated on the run's env/reward config "
         "(plus any --policy baselines on the same scenario); otherwise the baselines on a YAML config.",
     )
@@ -51,8 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     start()
     import jax
 
-    from tgrf_jax.train.checkpoint import CheckpointError
-    from tgrf_jax.train.loop import evaluate_params, evaluate_state, format_eval, restore_run
+    from tgrf_jax.evaluate import evaluate_params, evaluate_state, format_eval
+    from tgrf_jax.storage.checkpoint import CheckpointError
+    from tgrf_jax.train.run_dir import restore_run
 
     if sc.params is not None:
         print(f"pretrained {sc.pretrained} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}",
@@ -63,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         payload.update(pretrained=sc.pretrained)
     elif sc.run_dir is not None:
         try:
+            check_observation_fits(sc)
             _, state = restore_run(sc.run_dir, args.step)
         except CheckpointError as e:
             return checkpoint_error("tgrf-eval", e, f"tgrf-eval {sc.run_dir} --step")

@@ -15,16 +15,18 @@ import argparse
 import dataclasses
 import datetime
 import json
+import math
 import pathlib
 import platform
 import subprocess
 import sys
 
 from tgrf_jax.cli.common import check_jax, check_writable
+from tgrf_jax.env.gst import weights as weights_lib
 from tgrf_jax.predictor import data as data_lib
 from tgrf_jax.predictor import train as train_lib
-from tgrf_jax.predictor import weights as weights_lib
-from tgrf_jax.train.checkpoint import CheckpointError
+from tgrf_jax.storage.checkpoint import CheckpointError
+from tgrf_jax.storage.files import write_atomic
 
 _ERRORS = (ValueError, CheckpointError)  # DatasetError and WeightsError are ValueErrors
 
@@ -73,6 +75,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="training-time dropout rate (GST.md: 0.1)")
     t.add_argument("--export", help="also write the trained parameters here (.npz + .json)")
     t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints (the run dir must be new)")
+    t.add_argument("--from-step", type=int, metavar="N",
+                   help="continue from checkpoint N instead of the latest (a damaged one, say); the later "
+                   "checkpoints are deleted and their updates trained again")
 
     e = sub.add_parser("eval", help="held-out ADE / FDE / NLL against constant velocity")
     e.add_argument("--dataset", required=True)
@@ -96,8 +101,24 @@ def _load_params(args):
         raise weights_lib.WeightsError(f"state dict {str(path)!r} does not exist")
     import numpy as np
 
-    with np.load(path) as arrays:
-        return weights_lib.from_torch_state_dict({k: arrays[k] for k in arrays.files}), str(path)
+    try:
+        with np.load(path) as arrays:
+            return weights_lib.from_torch_state_dict({k: arrays[k] for k in arrays.files}), str(path)
+    except weights_lib.WeightsError as e:
+        raise weights_lib.WeightsError(f"--torch-state-dict {str(path)!r}: {e}") from None
+    except Exception as e:  # numpy raises several types for files that are no .npz of arrays
+        raise weights_lib.WeightsError(f"--torch-state-dict {str(path)!r} is not a state dict of numeric arrays "
+                                       f"({type(e).__name__}: {str(e)[:80]})") from None
+
+
+def _check_finite_params(params, source: str) -> None:
+    import jax
+    import numpy as np
+
+    bad = sum(int(np.size(x) - np.count_nonzero(np.isfinite(x))) for x in jax.tree_util.tree_leaves(params))
+    if bad:
+        raise weights_lib.WeightsError(f"predictor parameters {source!r} hold {bad:,} non-finite values (NaN or "
+                                       "inf); train them again")
 
 
 def _check_outputs(args) -> None:
@@ -131,27 +152,45 @@ def run(argv=None) -> int:
         run_dir = pathlib.Path(args.run_dir)
         if args.fresh and (run_dir / "checkpoints").exists():
             raise CheckpointError(f"--fresh: run directory {str(run_dir)!r} already holds checkpoints")
-        params, meta = train_lib.train(config, dataset, run_dir, log=lambda s: print(s, flush=True),
-                                       resume=not args.fresh)
+        if args.from_step is not None and (args.fresh or args.from_step < 0):
+            raise ValueError(f"--from-step {args.from_step}: give a checkpoint (update >= 0) of an existing run, "
+                             "without --fresh")
+        try:
+            params, meta = train_lib.train(config, dataset, run_dir, log=lambda s: print(s, flush=True),
+                                           resume=not args.fresh, from_step=args.from_step)
+        except CheckpointError as e:
+            intact = getattr(e, "intact", ())
+            if intact:
+                raise CheckpointError(f"{e}; continue from the latest intact one with --from-step {intact[-1]}") \
+                    from None
+            raise
         meta.update(_provenance())
         for target in [run_dir / "gst.npz"] + ([pathlib.Path(args.export)] if args.export else []):
             print(f"wrote {weights_lib.save_params(target, params, meta)}")
         return 0
     # eval
-    if args.windows < 1:
-        raise ValueError(f"--windows = {args.windows} must be >= 1")
+    if not 1 <= args.windows <= train_lib._LIMITS["eval_windows"]:
+        raise ValueError(f"--windows = {args.windows:,} is out of range; allowed: 1 .. "
+                         f"{train_lib._LIMITS['eval_windows']:,}")
     params, source = _load_params(args)
+    _check_finite_params(params, source)
     dataset = data_lib.load_dataset(args.dataset)
     _, val_index = data_lib.split_index(dataset["arrays"])
+    if not len(val_index):
+        raise data_lib.DatasetError(f"dataset {args.dataset!r} has no held-out window to evaluate (no pedestrian "
+                                    "seen for 10 frames in its last 20% of envs)")
     evaluate = train_lib.make_evaluator(data_lib.device_arrays(dataset["arrays"]))
     metrics = evaluate(params, train_lib.eval_subset(val_index, args.windows))
+    if not all(math.isfinite(metrics[k]) for k in ("ade", "fde", "nll", "ade_change", "fde_change")):
+        raise ValueError(f"the evaluation of {source!r} on {args.dataset!r} is not finite (ADE {metrics['ade']}, "
+                         f"FDE {metrics['fde']}, NLL {metrics['nll']}): the parameters or the data are damaged")
     print(f"parameters: {source}")
     print(train_lib.format_eval(metrics, f"{dataset['config']['crowd']} ({args.dataset})"))
     if args.out:
         out = pathlib.Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps({"params": source, "dataset": str(args.dataset), **metrics, **_provenance()},
-                                  indent=2))
+        write_atomic(out, json.dumps({"params": source, "dataset": str(args.dataset), **metrics, **_provenance()},
+                                     indent=2))
     return 0
 
 

@@ -11,7 +11,14 @@ import sys
 import time
 
 from tgrf_jax.cli.common import (
-    add_config_args, add_pretrained_arg, check_jax, check_seed, check_writable, checkpoint_error, error, scenario,
+    add_config_args,
+    add_pretrained_arg,
+    check_jax,
+    check_seed,
+    check_writable,
+    checkpoint_error,
+    error,
+    scenario,
     start,
 )
 from tgrf_jax.config import MAX_EPISODES, ConfigError
@@ -98,16 +105,16 @@ def main(argv: list[str] | None = None) -> int:
     env = CrowdNavEnv(sc.env, sc.reward)
     policies = []
     if sc.params is not None:
-        from tgrf_jax.train.policy import LearnedPolicy
-        from tgrf_jax.train.ppo import make_network_for
+        from tgrf_jax.policies import make_network_for
+        from tgrf_jax.policies.learned import LearnedPolicy
 
         policies.append((f"pretrained {sc.pretrained}", "learned",
                          LearnedPolicy(make_network_for(sc.config), sc.params)))
     elif sc.run_dir is not None:
-        from tgrf_jax.train.checkpoint import CheckpointError
-        from tgrf_jax.train.loop import restore_run
-        from tgrf_jax.train.policy import LearnedPolicy
-        from tgrf_jax.train.ppo import make_network_for
+        from tgrf_jax.policies import make_network_for
+        from tgrf_jax.policies.learned import LearnedPolicy
+        from tgrf_jax.storage.checkpoint import CheckpointError
+        from tgrf_jax.train.run_dir import restore_run
 
         try:
             _, state = restore_run(sc.run_dir, args.step)

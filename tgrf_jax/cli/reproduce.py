@@ -51,7 +51,12 @@ def main(argv: list[str] | None = None) -> int:
         if not args.experiment:
             raise ConfigError(f"name an experiment: {', '.join(spec_lib.available())}")
         exp = spec_lib.load(args.experiment)
-        rows = [r.strip() for r in args.rows.split(",") if r.strip()] if args.rows else None
+        rows = None
+        if args.rows is not None:
+            rows = [r.strip() for r in args.rows.split(",")]
+            if not all(rows):
+                raise ConfigError(f"--rows {args.rows[:60]!r}: empty row name; give comma-separated names of "
+                                  f"{exp.name}'s rows: {', '.join(r.name for r in exp.rows)}")
         whole = exp.shrunk(steps=args.steps, seeds=args.seeds)  # the report always covers every row
         exp = whole.shrunk(rows=rows)
         out = pathlib.Path(args.out or pathlib.Path("runs") / "reproduce" / exp.name)

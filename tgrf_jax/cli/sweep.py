@@ -9,7 +9,13 @@ import pathlib
 import sys
 
 from tgrf_jax.cli.common import (
-    add_config_args, check_jax, check_writable, checkpoint_error, error, progress_line, start,
+    add_config_args,
+    check_jax,
+    check_writable,
+    checkpoint_error,
+    error,
+    progress_line,
+    start,
 )
 from tgrf_jax.config import ConfigError, griddable_fields
 
@@ -117,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
             init_distributed(args.coordinator, args.num_processes, args.process_id)
         except ConfigError as e:
             return error("tgrf-sweep", e)
+    from tgrf_jax.storage.checkpoint import CheckpointError
     from tgrf_jax.sweep.run import run_sweep
-    from tgrf_jax.train.checkpoint import CheckpointError
 
     layout = args.layout
     if layout == "auto":

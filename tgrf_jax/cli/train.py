@@ -7,7 +7,14 @@ import pathlib
 import sys
 
 from tgrf_jax.cli.common import (
-    add_config_args, check_jax, check_writable, checkpoint_error, error, progress_line, start, train_config,
+    add_config_args,
+    check_jax,
+    check_writable,
+    checkpoint_error,
+    error,
+    progress_line,
+    start,
+    train_config,
 )
 from tgrf_jax.config import ConfigError
 
@@ -31,8 +38,8 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    from tgrf_jax.train.checkpoint import CheckpointError
-    from tgrf_jax.train.loop import default_run_dir, load_run_config
+    from tgrf_jax.storage.checkpoint import CheckpointError
+    from tgrf_jax.train.run_dir import default_run_dir, load_run_config
 
     try:
         check_jax()
@@ -57,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     start(devices=config.ppo.num_shards, say_cache=True)  # one CPU device per env shard
-    from tgrf_jax.train.loop import train_run
+    from tgrf_jax.train.run_dir import train_run
 
     try:
         train_run(config, run_dir, resume=bool(args.resume), from_step=args.from_step,

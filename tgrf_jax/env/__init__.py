@@ -2,7 +2,17 @@
 
 from tgrf_jax.env.crowd import CrowdNavEnv
 from tgrf_jax.env.types import (
-    COLLISION, OUTCOME_NAMES, RUNNING, SUCCESS, TIMEOUT, EnvParams, EnvState, Humans, Info, Obs, Robot,
+    COLLISION,
+    OUTCOME_NAMES,
+    RUNNING,
+    SUCCESS,
+    TIMEOUT,
+    EnvParams,
+    EnvState,
+    Humans,
+    Info,
+    Obs,
+    Robot,
 )
 
 __all__ = [

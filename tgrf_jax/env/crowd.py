@@ -1,8 +1,9 @@
 """The crowd-navigation environment: pure `reset` / `step` in the gymnax 1.0 shape, jit- and vmap-able.
 
-Step order (SPEC A.2 fixes included): clip the robot's action and move it; every human picks a velocity from
-the pre-step joint state and moves; collision (swept over the step), goal and danger are judged on the state
-the action led to; then human goal changes and respawns; then predictions and the new observation.
+Step order (docs/reference.md; docs/differences.md lists where it departs from the reference): clip the robot's
+action and move it; every human picks a velocity from the pre-step joint state and moves; collision (swept over
+the step), goal and danger are judged on the state the action led to; then human goal changes and respawns; then
+predictions and the new observation.
 """
 
 from __future__ import annotations
@@ -17,14 +18,21 @@ import jax.numpy as jnp
 from tgrf_jax import reward as reward_lib
 from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
 from tgrf_jax.env import humans as humans_lib
-from tgrf_jax.env import scenario, sensing
-from tgrf_jax.predictor import history as gst_history
-from tgrf_jax.predictor import weights as gst_weights
-from tgrf_jax.geometry import norm
+from tgrf_jax.env import prediction, scenario, sensing
+from tgrf_jax.env.geometry import norm
+from tgrf_jax.env.gst import history as gst_history
+from tgrf_jax.env.gst import weights as gst_weights
 from tgrf_jax.env.types import (
-    COLLISION, RUNNING, SUCCESS, TIMEOUT, EnvParams, EnvState, Info, Obs, Robot,
+    COLLISION,
+    RUNNING,
+    SUCCESS,
+    TIMEOUT,
+    EnvParams,
+    EnvState,
+    Info,
+    Obs,
+    Robot,
 )
-
 
 _RESET_CHUNK = 16  # fresh episodes computed together by step_batch (a step finishes a few per 512 envs)
 
@@ -89,7 +97,7 @@ def swept_min_distance(rel_start, rel_motion):
 
 
 class CrowdNavEnv:
-    """Socially aware navigation among N humans (CrowdNav++ scenario, SPEC A.1).
+    """Socially aware navigation among N humans (the CrowdNav++ scenario, docs/reference.md).
 
     `config` holds the static choices (shapes, code paths) and the defaults of every numeric parameter;
     `default_params` turns the numeric ones into a traced `EnvParams` pytree.
@@ -311,7 +319,7 @@ class CrowdNavEnv:
         if self.config.predictor == "gst":
             pred = gst_history.predictions(params.predictor, state.history)
             return pred.means, visible & pred.out_mask
-        return humans_lib.predict(state.humans, params, self.config, state.orca_neighbor_dist), visible
+        return prediction.predict(state.humans, params, self.config, state.orca_neighbor_dist), visible
 
     def _future_intrusion(self, state: EnvState, visible, predictions, params):
         """itr_future: robot centre within intrusion_radius of a visible human's true position at t+1..t+K."""
@@ -321,7 +329,7 @@ class CrowdNavEnv:
         if cfg.predictor == "truth":
             future = predictions
         else:
-            future = humans_lib.true_future(state.humans, params, cfg, cfg.pred_horizon, state.orca_neighbor_dist)
+            future = prediction.true_future(state.humans, params, cfg, cfg.pred_horizon, state.orca_neighbor_dist)
         dist = norm(future - state.robot.pos)
         dist = jnp.where(visible[:, None], dist, jnp.inf)
         nearest = jnp.min(dist, initial=jnp.inf)

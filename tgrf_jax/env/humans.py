@@ -1,13 +1,12 @@
-"""Human motion: one velocity update for all humans (ORCA or Social Force) and K-step trajectory predictions."""
+"""Human motion: one velocity update for all humans, by ORCA or Social Force."""
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
-from tgrf_jax import orca, social_force
-from tgrf_jax.geometry import safe_norm
 from tgrf_jax.config import EnvConfig
+from tgrf_jax.env import orca, social_force
+from tgrf_jax.env.geometry import safe_norm
 from tgrf_jax.env.types import EnvParams, Humans, Robot
 
 
@@ -53,30 +52,3 @@ def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, con
             pos, vel, goal, radius, v_pref, a=params.sf_a, b=params.sf_b, ki=params.sf_ki, dt=params.dt
         )
     return new_vel[:n]
-
-
-def predict(humans: Humans, params: EnvParams, config: EnvConfig, neighbor_dist):
-    """Predicted world positions (N, K, 2) at t+1..t+K, or None for predictor 'none'.
-
-    const_vel extrapolates the last applied velocity; truth rolls the human model itself forward K steps from
-    the true joint state with goals frozen and the robot left out (as the reference does).
-    """
-    k = config.pred_horizon
-    if config.predictor == "none":
-        return None
-    if config.predictor == "const_vel":
-        steps = jnp.arange(1, k + 1, dtype=jnp.float32)[None, :, None] * params.dt
-        return humans.pos[:, None, :] + steps * humans.vel[:, None, :]
-    return true_future(humans, params, config, k, neighbor_dist)
-
-
-def true_future(humans: Humans, params: EnvParams, config: EnvConfig, k: int, neighbor_dist):
-    """Ground-truth future positions (N, k, 2) of the humans' own policy, goals frozen, robot invisible."""
-
-    def advance(h: Humans, _):
-        vel = human_velocities(h, None, params, config, neighbor_dist)
-        h = h.replace(pos=h.pos + vel * params.dt, vel=vel)
-        return h, h.pos
-
-    _, future = jax.lax.scan(advance, humans, None, length=k)
-    return jnp.swapaxes(future, 0, 1)

@@ -1,4 +1,5 @@
-"""Circle-crossing scenario: robot start/goal sampling, human spawning, goal changes and respawns (SPEC B 1.2).
+"""Circle-crossing scenario: robot start/goal sampling, human spawning, goal changes and respawns
+(the reference's `crowd_sim_pred_real_gst.py` and its parents; docs/reference.md).
 
 Rejection sampling is bounded: each draw proposes `tries` candidates at once and takes the first valid one;
 when none is valid (a very crowded scene), it takes the candidate with the most clearance, so shapes and run
@@ -10,9 +11,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from tgrf_jax.batching import cond_gathered
+from tgrf_jax.env.batching import cond_gathered
+from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.types import EnvParams, Humans, Robot
-from tgrf_jax.geometry import norm
 
 
 def _mix32(x):

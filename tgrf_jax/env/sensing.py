@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from tgrf_jax.geometry import norm
-
+from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.types import EnvParams, EnvState, Obs
 
 

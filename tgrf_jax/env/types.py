@@ -75,7 +75,7 @@ class EnvState:
     goal_dist_ref: jnp.ndarray  # () goal distance at the last step outside the danger zone (for r_pot)
     step_count: jnp.ndarray  # () int32 steps taken in this episode
     orca_neighbor_dist: jnp.ndarray  # () the humans' ORCA neighbour distance, drawn once per episode
-    history: Any = None  # learned predictor's observed frames (tgrf_jax.predictor.history), else None
+    history: Any = None  # learned predictor's observed frames (tgrf_jax.env.gst.history), else None
 
 
 @struct.dataclass

@@ -16,12 +16,13 @@ import shutil
 
 import numpy as np
 
+from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments.spec import Experiment, Row
-from tgrf_jax.files import write_atomic
+from tgrf_jax.storage.files import write_atomic
 
 REPORT_MD = "report.md"
 REPORT_CSV = "report.csv"
-CSV_FIELDS = ("experiment", "row", "label", "axis", "value", "seeds", "sr_mean", "sr_std", "best_seed", "sr",
+CSV_FIELDS = ("experiment", "row", "label", "axis", "value", "damaged", "seeds", "sr_mean", "sr_std", "best_seed", "sr",
               "nt", "pl", "itr", "itr_disc", "paper_sr_mean", "paper_sr_std", "paper_sr", "paper_nt", "paper_pl",
               "paper_itr", "row_wall_s", "commit")
 _FIGURES = ("heatmap.png", "grid_metrics.png", "learning_curves.png", "eval_curves.png")
@@ -34,38 +35,106 @@ def _float(x) -> float:
         return math.nan
 
 
+# evals.csv columns every finished run fills with a finite number (the others may be NaN: no successful episode
+# gives no navigation time)
+_REQUIRED = ("success_rate",)
+_NUMBERS = ("collision_rate", "timeout_rate", "nav_time", "path_length", "itr_future", "itr_disc")
+
+
 def read_evals(row_dir: pathlib.Path) -> list[dict]:
     path = row_dir / "evals.csv"
     if not path.is_file():
         return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+    return _read_csv(path)
+
+
+def _read_csv(path: pathlib.Path) -> list[dict]:
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            return list(csv.DictReader(f))
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return [{}]  # unreadable: `evals_problem` names it
+
+
+def _expected_runs(row_dir: pathlib.Path) -> int | None:
+    """The number of runs the row's sweep.yaml lists (None where it cannot be read)."""
+    import yaml
+
+    try:
+        runs = yaml.safe_load((row_dir / "sweep.yaml").read_text()).get("runs")
+        return len(runs) if isinstance(runs, list) else None
+    except Exception:  # a missing or damaged sweep.yaml: the row's own resume reports it
+        return None
+
+
+def evals_problem(row_dir: pathlib.Path) -> str | None:
+    """What is wrong with a row's evals.csv (missing, cut, a value that is not a number), or None if every run of
+    the row has its numbers."""
+    path = row_dir / "evals.csv"
+    if not path.is_file():
+        return "evals.csv is missing"
+    runs = _read_csv(path)
+    expected = _expected_runs(row_dir)
+    if runs == [{}] and path.stat().st_size:
+        return "evals.csv is not readable UTF-8 CSV"
+    if expected is not None and len(runs) != expected:
+        return f"evals.csv holds {len(runs)} runs, its sweep {expected}"
+    if not runs:
+        return "evals.csv holds no runs"
+    for i, r in enumerate(runs, start=2):
+        seed = r.get("seed")
+        if seed is None or not str(seed).isdigit():
+            return f"evals.csv line {i}: seed = {str(seed)[:20]!r} is not a whole number"
+        for k in _REQUIRED:
+            if not math.isfinite(_float(r.get(k))):
+                return f"evals.csv line {i}: {k} = {str(r.get(k))[:20]!r} is not a finite number"
+        for k in _NUMBERS:
+            if k in r and r[k] not in ("", "nan") and math.isnan(_float(r[k])):
+                return f"evals.csv line {i}: {k} = {str(r[k])[:20]!r} is not a number"
+    return None
 
 
 def cell(runs: list[dict]) -> dict:
-    """SR mean ± std over seeds (in %) and the best seed's metrics, from one grid point's evals.csv rows."""
+    """SR mean ± std over seeds (in %) and the best seed's metrics, from one grid point's evals.csv rows (checked
+    by `evals_problem`: every success rate is a number, so the mean and the seed count cover the same runs)."""
     if not runs:
         return {}
     sr = np.array([_float(r["success_rate"]) * 100.0 for r in runs])
-    best = runs[int(np.nanargmax(sr))] if np.isfinite(sr).any() else runs[0]
+    best = runs[int(np.argmax(sr))]
     return {
         "seeds": len(runs),
-        "sr_mean": float(np.nanmean(sr)),
-        "sr_std": float(np.nanstd(sr, ddof=1)) if len(runs) > 1 else math.nan,
+        "sr_mean": float(np.mean(sr)),
+        "sr_std": float(np.std(sr, ddof=1)) if len(runs) > 1 else math.nan,
         "best_seed": int(best["seed"]),
         "sr": _float(best["success_rate"]) * 100.0,
-        "nt": _float(best["nav_time"]),
-        "pl": _float(best["path_length"]),
-        "itr": _float(best["itr_future"]),
-        "itr_disc": _float(best["itr_disc"]),
+        "nt": _float(best.get("nav_time")),
+        "pl": _float(best.get("path_length")),
+        "itr": _float(best.get("itr_future")),
+        "itr_disc": _float(best.get("itr_disc")),
     }
 
 
-def _provenance(row_dir: pathlib.Path) -> dict:
+def read_provenance(row_dir: pathlib.Path) -> dict | None:
+    """A row's provenance.json (None where there is none); raises ConfigError naming a damaged one."""
     path = row_dir / "provenance.json"
     if not path.is_file():
+        return None
+    try:
+        prov = json.loads(path.read_text(encoding="utf-8"))
+        if not isinstance(prov, dict) or not isinstance(prov.get("invocations"), list) or not all(
+                isinstance(i, dict) for i in prov["invocations"]):
+            raise ValueError("no list of invocations")
+        float(prov.get("wall_s", 0.0))
+    except (OSError, UnicodeDecodeError, ValueError, TypeError) as e:
+        raise ConfigError(f"{str(path)!r} is damaged ({type(e).__name__}: {str(e)[:80]}); restore it, or move it "
+                          "aside to record the row's invocations afresh") from None
+    return prov
+
+
+def _provenance(row_dir: pathlib.Path) -> dict:
+    prov = read_provenance(row_dir)
+    if prov is None:
         return {}
-    prov = json.loads(path.read_text())
     invocations = prov.get("invocations") or []
     last = invocations[-1] if invocations else {}
 
@@ -84,9 +153,14 @@ def collect(exp: Experiment, out: pathlib.Path) -> list[dict]:
     records = []
     for row in exp.rows:
         runs = read_evals(out / row.name)
+        problem = evals_problem(out / row.name) if (out / row.name / "evals.csv").is_file() else None
+        if problem:
+            runs = []
         prov = _provenance(out / row.name) if runs else {}
         for value in row.grid[0][1]:
             ours = cell([r for r in runs if r.get(axis) == str(value)])
+            if problem:
+                ours = {"damaged": f"damaged ({problem}): rerun tgrf-reproduce {exp.name} --rows {row.name}"}
             paper = row.paper.get(str(value), {})
             rec = {"experiment": exp.name, "row": row.name, "label": row.label, "axis": axis, "value": str(value),
                    **ours, **{f"paper_{k}": v for k, v in paper.items()}}
@@ -113,7 +187,7 @@ def format_table(exp: Experiment, records: list[dict]) -> str:
         for rec in (r for r in records if r["value"] == str(value)):
             has_paper = "paper_sr" in rec
             pp = (lambda k, fmt="{:.2f}": _num(rec.get(f"paper_{k}"), fmt) if has_paper else None)
-            sr_mean = "…" if "sr_mean" not in rec else (
+            sr_mean = rec["damaged"] if "damaged" in rec else "…" if "sr_mean" not in rec else (
                 f"{rec['sr_mean']:.1f}" + (f" ± {rec['sr_std']:.1f}" if not math.isnan(rec["sr_std"]) else ""))
             paper_mean = (f"{rec['paper_sr_mean']:.1f} ± {rec['paper_sr_std']:.1f}"
                           if has_paper and "paper_sr_mean" in rec else ("–" if has_paper else None))
@@ -134,6 +208,9 @@ def format_table(exp: Experiment, records: list[dict]) -> str:
 def _grid_points(exp: Experiment, row: Row, out: pathlib.Path) -> str:
     """Mean ± std over seeds of SR and both ITRs for every grid point of a row (heat maps, curves)."""
     runs = read_evals(out / row.name)
+    problem = evals_problem(out / row.name) if runs else None
+    if problem:
+        return f"damaged ({problem}): rerun tgrf-reproduce {exp.name} --rows {row.name}"
     names = exp.grid_names
     lines = ["| " + " | ".join(names) + " | seeds | SR (%) | ITR (%) | ITR disc (%) | NT (s) | PL (m) |",
              "|" + "---|" * (len(names) + 6)]
@@ -142,7 +219,7 @@ def _grid_points(exp: Experiment, row: Row, out: pathlib.Path) -> str:
         groups.setdefault(tuple(r[n] for n in names), []).append(r)
 
     def ms(rs, key, scale=1.0):
-        x = np.array([_float(r[key]) * scale for r in rs])
+        x = np.array([_float(r.get(key)) * scale for r in rs])
         x = x[np.isfinite(x)]
         if not x.size:
             return "–"

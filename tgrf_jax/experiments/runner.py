@@ -27,7 +27,7 @@ import yaml
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import report
 from tgrf_jax.experiments.spec import Experiment, Row, sweep_args
-from tgrf_jax.files import write_atomic
+from tgrf_jax.storage.files import write_atomic
 
 EXPERIMENT_FILE = "experiment.yaml"
 PROVENANCE_FILE = "provenance.json"
@@ -37,7 +37,7 @@ PR_SET_PDEATHSIG = 1  # from <sys/prctl.h>
 
 # What a training run imports or reads. Results written into the checkout (docs/, exported policies under
 # tgrf_jax/pretrained/) are not code: they must not mark every row trained from a working tree as '+dirty'.
-CODE_PATHSPEC = ("tgrf_jax", "configs", "pyproject.toml", ":(exclude)tgrf_jax/pretrained")
+CODE_PATHS = ("tgrf_jax", "configs", "pyproject.toml", ":(exclude)tgrf_jax/pretrained")
 
 
 def source_commit(root: pathlib.Path | None = None) -> str:
@@ -48,7 +48,7 @@ def source_commit(root: pathlib.Path | None = None) -> str:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"], capture_output=True,
                               text=True, timeout=10, check=True).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=all", "--",
-                                *CODE_PATHSPEC], capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+                                *CODE_PATHS], capture_output=True, text=True, timeout=10, check=True).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return head + ("+dirty" if dirty else "")
@@ -84,7 +84,7 @@ def gpu_models() -> list[str]:
 
 def machine() -> str:
     """The CPU and its usable cores, and any GPUs, as recorded beside results."""
-    from tgrf_jax.cpu import cpu_model
+    from tgrf_jax.runtime.cpu import cpu_model
 
     desc = f"{cpu_model()}, {len(os.sched_getaffinity(0))} cores"
     models = gpu_models()
@@ -94,14 +94,43 @@ def machine() -> str:
 
 
 def row_state(row_dir: pathlib.Path) -> str:
-    """'done', 'resumable', 'stale' (started, no checkpoint yet) or 'new'."""
+    """'done', 'damaged' (finished, but its evals.csv is not whole, or its last invocation is unrecorded: a rerun
+    of its finished sweep repairs it), 'resumable', 'stale' (started, no checkpoint yet) or 'new'."""
     if (row_dir / "evals.csv").is_file():
-        return "done"
+        return "done" if report.evals_problem(row_dir) is None and _recorded(row_dir) else "damaged"
     if not (row_dir / "sweep.yaml").is_file():
         return "new"
+    return "resumable" if _has_step(row_dir) else "stale"
+
+
+def row_problem(row_dir: pathlib.Path) -> str:
+    """Why a 'damaged' row is not done."""
+    return report.evals_problem(row_dir) or f"{PROVENANCE_FILE} does not record the invocation that finished it"
+
+
+def _has_step(row_dir: pathlib.Path) -> bool:
     ckpts = row_dir / "checkpoints"
-    has_step = ckpts.is_dir() and any(p.name.isdigit() for p in ckpts.iterdir())
-    return "resumable" if has_step else "stale"
+    return ckpts.is_dir() and any(p.name.isdigit() for p in ckpts.iterdir())
+
+
+def _recorded(row_dir: pathlib.Path) -> bool:
+    """The row's last invocation ended with exit code 0 in provenance.json. The entry is written before the sweep
+    starts and completed after it, so a kill in between leaves a row that is not done."""
+    prov = report.read_provenance(row_dir)
+    return bool(prov and prov["invocations"] and prov["invocations"][-1].get("exit_code") == 0)
+
+
+def _load_recorded(recorded: pathlib.Path) -> dict:
+    try:
+        old = yaml.safe_load(recorded.read_text(encoding="utf-8"))
+        if not isinstance(old, dict) or not isinstance(old.get("rows", []), list) or not all(
+                isinstance(r, dict) and "name" in r for r in old.get("rows", [])):
+            raise ValueError("not a mapping with a list of rows")
+    except (OSError, UnicodeDecodeError, ValueError, yaml.YAMLError) as e:
+        raise ConfigError(f"{str(recorded)!r} is damaged ({type(e).__name__}: {str(e).splitlines()[0][:80]}): the "
+                          "settings of the rows in its directory are unknown; restore it, or use another --out") \
+            from None
+    return old
 
 
 def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
@@ -110,7 +139,7 @@ def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {str(out)!r} is a file, not a directory")
     if recorded.is_file():
-        old = yaml.safe_load(recorded.read_text())
+        old = _load_recorded(recorded)
         new = exp.to_dict()
         old_rows = {r["name"]: r for r in old.get("rows", [])}
         clash = [k for k in ("config", "seeds") if old.get(k) != new.get(k)]
@@ -119,6 +148,11 @@ def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
             raise ConfigError(
                 f"{str(out)!r} holds results of this experiment with other settings ({', '.join(clash)} differ); "
                 "use another --out, or the same --steps/--seeds as before")
+    elif out.is_dir():
+        started = sorted(p.name for p in out.iterdir() if (p / "sweep.yaml").is_file())
+        if started:  # their budget and seeds are recorded nowhere else: results could mix settings
+            raise ConfigError(f"{str(out)!r} holds rows ({', '.join(started[:5])}) but no {EXPERIMENT_FILE}, so "
+                              "their settings are unknown; restore it, or use another --out")
 
 
 def _record(exp: Experiment, out: pathlib.Path) -> None:
@@ -126,7 +160,7 @@ def _record(exp: Experiment, out: pathlib.Path) -> None:
     recorded = out / EXPERIMENT_FILE
     data = exp.to_dict()
     if recorded.is_file():
-        old = yaml.safe_load(recorded.read_text())
+        old = _load_recorded(recorded)
         names = {r["name"] for r in data["rows"]}
         data["rows"] = [r for r in old.get("rows", []) if r["name"] not in names] + data["rows"]
     write_atomic(recorded, yaml.safe_dump(data, sort_keys=False))
@@ -163,17 +197,34 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     """Train (or resume) one row as a tgrf-sweep child process; returns its exit code. `layout`: a new row's
     sweep layout (default auto), or the layout a started row switches to (default: the one it has)."""
     state = row_state(row_dir)
+    prov_path = row_dir / PROVENANCE_FILE
     if state == "stale":
         say(f"  {row.name}: stopped before its first checkpoint; starting it again")
-        shutil.rmtree(row_dir)
+        if prov_path.is_file():  # the invocations that got it this far are kept
+            kept = prov_path.read_text()
+            shutil.rmtree(row_dir)
+            row_dir.mkdir(parents=True)
+            write_atomic(prov_path, kept)
+        else:
+            shutil.rmtree(row_dir)
+    if state == "damaged":
+        say(f"  {row.name}: {row_problem(row_dir)}; its finished sweep writes its results again")
     cmd = [sys.executable, "-m", "tgrf_jax.cli.sweep"]
-    if state == "resumable":
+    if state in ("resumable", "damaged"):
         cmd += ["--resume", str(row_dir)] + (["--layout", layout] if layout else [])
     else:
         cmd += sweep_args(exp, row, layout or "auto") + ["--out", str(row_dir)]
-    prov_path = row_dir / PROVENANCE_FILE
-    prov = json.loads(prov_path.read_text()) if prov_path.is_file() else {"wall_s": 0.0, "invocations": []}
+    prov = report.read_provenance(row_dir) or {"wall_s": 0.0, "invocations": []}
     started, commit = time.perf_counter(), source_commit()  # the code the sweep imports now, not at its end
+    invocation = {"commit": commit, "machine": machine(), "exit_code": None,
+                  "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+                  "command": " ".join(["tgrf-sweep"] + cmd[3:])}
+    wall_before = float(prov.get("wall_s", 0.0))
+    prov["invocations"].append(invocation)
+    row_dir.mkdir(parents=True, exist_ok=True)
+    # recorded before the sweep starts: a kill of this process while the sweep writes its results leaves an
+    # invocation without an exit code, and the row is not counted as done until a rerun completes it
+    write_atomic(prov_path, json.dumps(prov, indent=2))
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
                             preexec_fn=_stop_with_parent if sys.platform.startswith("linux") else None)
@@ -193,12 +244,9 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
         # Also when interrupted: a row trained over several invocations keeps the wall time and commit of each.
         code = proc.wait()
         if row_dir.is_dir():
-            prov["wall_s"] += time.perf_counter() - started
-            prov["invocations"].append({
-                "commit": commit, "machine": machine(), "exit_code": code,
-                "finished": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-                "command": " ".join(["tgrf-sweep"] + cmd[3:]),
-            })
+            prov["wall_s"] = wall_before + time.perf_counter() - started
+            invocation.update(exit_code=code,
+                              finished=datetime.datetime.now().astimezone().isoformat(timespec="seconds"))
             write_atomic(prov_path, json.dumps(prov, indent=2))
     return code
 
@@ -227,10 +275,10 @@ def export_best(exp: Experiment, out: pathlib.Path, row: Row, dest_root) -> list
 
 
 def _provenance_commit(row_dir: pathlib.Path) -> str | None:
-    path = row_dir / PROVENANCE_FILE
-    if not path.is_file():
+    prov = report.read_provenance(row_dir)
+    if prov is None:
         return None
-    invocations = json.loads(path.read_text()).get("invocations") or [{}]
+    invocations = prov["invocations"] or [{}]
     return invocations[-1].get("commit")
 
 
@@ -246,7 +294,7 @@ def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, expor
     With `export_to`, each finished row's best policies are exported there (`export_best`). The report covers
     `report_exp` (default `exp`): the whole experiment when `exp` is a selection of its rows, so rows finished
     by earlier selections stay in the table. `layout`: see `run_row`."""
-    from tgrf_jax.train.lock import exclusive
+    from tgrf_jax.storage.lock import exclusive
 
     out = pathlib.Path(out)
     check_out_dir(exp, out)

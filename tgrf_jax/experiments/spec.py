@@ -23,6 +23,7 @@ Every row runs as one `tgrf-sweep` (all grid points x seeds of the row train as 
 from __future__ import annotations
 
 import dataclasses
+import math
 import pathlib
 from typing import Any, Mapping
 
@@ -135,6 +136,11 @@ def resolve_path(name_or_path: str) -> pathlib.Path:
     return candidate
 
 
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def _overrides(mapping: Any, where: str) -> tuple[str, ...]:
     if mapping is None:
         return ()
@@ -162,6 +168,9 @@ def _paper(raw: Any, where: str, column_values) -> dict:
         unknown = set(numbers) - set(PAPER_FIELDS)
         if unknown:
             raise ConfigError(f"{where}.{value}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(PAPER_FIELDS)}")
+        for k, v in numbers.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ConfigError(f"{where}.{value}.{k} = {_short(v)} must be a finite number")
         out[str(value)] = {k: float(v) for k, v in numbers.items()}
     return out
 
@@ -173,6 +182,12 @@ def _grid(raw: Any, where: str) -> tuple[tuple[str, tuple], ...]:
     for key, values in raw.items():
         if not isinstance(values, list) or not values:
             raise ConfigError(f"{where}.{key} must be a non-empty list of values")
+        for v in values:
+            # a row runs as `tgrf-sweep --grid key=v1,v2`: a comma inside a value would split it in two
+            if isinstance(v, bool) or not isinstance(v, (int, float, str)) or (isinstance(v, str) and (
+                    not v.strip() or "," in v)):
+                raise ConfigError(f"{where}.{key}: value {_short(v)} is not allowed; allowed: numbers and names "
+                                  "without commas, one list item each")
         axes.append((str(key), tuple(values)))
     return tuple(axes)
 

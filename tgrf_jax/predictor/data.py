@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
 import pathlib
 import time
@@ -26,16 +27,17 @@ from flax import struct
 
 from tgrf_jax.env import scenario, sensing
 from tgrf_jax.env.crowd import CrowdNavEnv
+from tgrf_jax.env.gst.history import FILLER_OFFSET
+from tgrf_jax.env.gst.model import OBS_LEN, PRED_LEN
 from tgrf_jax.env.types import EnvState, Obs
 from tgrf_jax.policies import OrcaPolicy
-from tgrf_jax.predictor.history import FILLER_OFFSET
-from tgrf_jax.predictor.model import OBS_LEN, PRED_LEN
 
 WINDOW = OBS_LEN + PRED_LEN
 CROWDS = ("orca", "social_force")
 TRAIN_FRACTION = 0.8
 _RESPAWN_JUMP = 1.0  # metres in one step: no human walks that far (v_pref <= 1.5 m/s, dt 0.25 s)
 _FORMAT = 1
+MAX_FRAMES = 20_000_000
 
 
 class DatasetError(ValueError):
@@ -54,10 +56,16 @@ class CollectConfig:
     def __post_init__(self):
         if self.crowd not in CROWDS:
             raise ValueError(f"crowd = {self.crowd!r} is not allowed; allowed: {', '.join(map(repr, CROWDS))}")
-        for name, low in (("num_envs", 5), ("steps", WINDOW), ("num_humans", 1), ("chunk", 1)):
+        for name, low, high in (("num_envs", 5, 100_000), ("steps", WINDOW, 1_000_000), ("num_humans", 1, 200),
+                                ("chunk", 1, 1_000_000)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} = {value!r} must be an integer >= {low}")
+            if value > high:
+                raise ValueError(f"{name} = {value:,} is out of range; allowed: {low} .. {high:,}")
+        if self.num_envs * self.steps > MAX_FRAMES:  # the arrays are held in memory whole
+            raise ValueError(f"num_envs x steps = {self.num_envs * self.steps:,} frames is out of range; allowed: "
+                             f"<= {MAX_FRAMES:,}")
         if not isinstance(self.seed, int) or not 0 <= self.seed < 2**31:
             raise ValueError(f"seed = {self.seed!r} must be an integer in [0, 2^31)")
 
@@ -155,28 +163,65 @@ def save_dataset(path, dataset: dict) -> pathlib.Path:
     return path
 
 
+def content_hash(arrays: dict) -> str:
+    """SHA-256 of a dataset's arrays (names, dtypes, shapes and bytes): what identifies it, whatever its file is
+    called and whatever config it records."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
+        h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
+
+
+_KINDS = {"robot_pos": ("f", "floating-point"), "human_pos": ("f", "floating-point"), "visible": ("b", "boolean"),
+          "seg": ("iu", "integer")}
+
+
+def check_arrays(arrays: dict, where: str) -> None:
+    """Shapes, dtypes and finite positions of a dataset's arrays; raises DatasetError naming `where` and the array.
+    (A float `visible` or NaN positions would otherwise train silently into NaN weights.)"""
+    human = arrays["human_pos"]
+    if human.ndim != 4 or human.shape[-1] != 2:
+        raise DatasetError(f"{where}: human_pos has shape {human.shape}; expected (envs, steps, humans, 2)")
+    for name, (kinds, label) in _KINDS.items():
+        if arrays[name].dtype.kind not in kinds:
+            raise DatasetError(f"{where}: {name} has dtype {arrays[name].dtype}; expected {label}")
+    b, t, n, _ = human.shape
+    expected = {"robot_pos": (b, t, 2), "visible": (b, t, n), "seg": (b, t, n)}
+    for name, shape in expected.items():
+        if arrays[name].shape != shape:
+            raise DatasetError(f"{where}: {name} has shape {arrays[name].shape}, expected {shape}")
+    if b < 2 or t < WINDOW:
+        raise DatasetError(f"{where} is too small ({b} envs x {t} steps; need >= 2 x {WINDOW})")
+    for name in ("robot_pos", "human_pos"):
+        bad = int(np.size(arrays[name]) - np.count_nonzero(np.isfinite(arrays[name])))
+        if bad:
+            raise DatasetError(f"{where}: {name} holds {bad:,} non-finite values (NaN or inf); collect it again")
+
+
 def load_dataset(path) -> dict:
-    """Load and check a dataset written by `save_dataset`."""
+    """Load and check a dataset written by `save_dataset`; its "sha256" is `content_hash` of the arrays."""
     path = pathlib.Path(path)
     if not path.is_file():
         raise DatasetError(f"dataset {str(path)!r} does not exist (make one with `tgrf-predictor collect`)")
+    where = f"dataset {str(path)!r}"
     try:
         with np.load(path) as data:
             arrays = {k: data[k] for k in ("robot_pos", "human_pos", "visible", "seg")}
             meta = json.loads(str(data["meta"]))
     except Exception as e:  # zip / pickle / key errors of a damaged file
-        raise DatasetError(f"dataset {str(path)!r} is corrupt or not a predictor dataset: "
-                           f"{type(e).__name__}: {e}") from e
-    if meta.get("format") != _FORMAT:
-        raise DatasetError(f"dataset {str(path)!r} has format {meta.get('format')!r}; this version reads {_FORMAT}")
-    b, t, n, _ = arrays["human_pos"].shape
-    expected = {"robot_pos": (b, t, 2), "visible": (b, t, n), "seg": (b, t, n)}
-    for name, shape in expected.items():
-        if arrays[name].shape != shape:
-            raise DatasetError(f"dataset {str(path)!r}: {name} has shape {arrays[name].shape}, expected {shape}")
-    if b < 2 or t < WINDOW:
-        raise DatasetError(f"dataset {str(path)!r} is too small ({b} envs x {t} steps; need >= 2 x {WINDOW})")
-    return {"arrays": arrays, "config": meta["config"], "collect_seconds": meta.get("collect_seconds")}
+        raise DatasetError(f"{where} is corrupt or not a predictor dataset: {type(e).__name__}: {e}") from None
+    if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else meta
+        raise DatasetError(f"{where} has format {found!r}; this version reads {_FORMAT}")
+    config = meta.get("config")
+    if not isinstance(config, dict) or not isinstance(config.get("crowd"), str):
+        raise DatasetError(f"{where}: its metadata has no config with a crowd name (config = "
+                           f"{str(config)[:80]}); collect it again with `tgrf-predictor collect`")
+    check_arrays(arrays, where)
+    return {"arrays": arrays, "config": config, "collect_seconds": meta.get("collect_seconds"),
+            "sha256": content_hash(arrays)}
 
 
 # ------------------------------------------------------------------------------------------ windows

@@ -21,13 +21,24 @@ import numpy as np
 import optax
 from flax import struct
 
+from tgrf_jax.env.gst.model import (
+    PRED_LEN,
+    StepGaussians,
+    accumulate,
+    init_params,
+    step_gaussians,
+)
 from tgrf_jax.predictor import data as data_lib
-from tgrf_jax.predictor.model import PRED_LEN, StepGaussians, accumulate, init_params, step_gaussians
-from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer
+from tgrf_jax.storage.checkpoint import Checkpointer, CheckpointError
+from tgrf_jax.storage.files import write_atomic
+from tgrf_jax.storage.lock import exclusive
 
 # CrowdNav++'s README, its non-rand model on its own ORCA test data (ADE / FDE over 1.25 s).
 YARDSTICK = {"ade": 0.158, "fde": 0.322}
 MEAN_LOSSES = ("ade", "nll")
+# batch_size: a batch's windows are built on the device at once; updates: the step counter is int32
+_LIMITS = {"updates": 2**31 - 1, "batch_size": 65_536, "decay_every": 2**31 - 1, "log_every": 2**31 - 1,
+           "checkpoint_every": 2**31 - 1, "eval_windows": 10_000_000}
 _CORR_LIMIT = 0.999  # keeps log(1 - rho^2) finite; tanh outputs saturate in float32 otherwise
 
 
@@ -42,7 +53,7 @@ class TrainConfig:
     log_every: int = 100
     checkpoint_every: int = 1000
     eval_windows: int = 20000
-    cv_prior: bool = True  # predict corrections to constant velocity (see tgrf_jax.predictor.model)
+    cv_prior: bool = True  # predict corrections to constant velocity (see tgrf_jax.env.gst.model)
     mean_loss: str = "ade"  # what fits the predicted means: "ade" (displacement error) or "nll" (GST.md's loss)
     dropout: float = 0.0  # GST.md trains with 0.1
 
@@ -51,6 +62,8 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name} = {value!r} must be an integer >= 1")
+            if value > _LIMITS[name]:
+                raise ValueError(f"{name} = {value:,} is out of range; allowed: 1 .. {_LIMITS[name]:,}")
         if not 0 < self.lr <= 1:
             raise ValueError(f"lr = {self.lr!r} must be in (0, 1]")
         if not 0 < self.decay_rate <= 1:
@@ -264,52 +277,121 @@ def format_eval(metrics: dict, label: str) -> str:
 _EXTENSIBLE = ("updates", "checkpoint_every", "eval_windows")  # may change when a run is resumed
 
 
-def _run_meta(config: TrainConfig, dataset_config: dict) -> dict:
-    return {"train": dataclasses.asdict(config), "dataset": dataset_config}
+class TrainingError(ValueError):
+    """Training cannot go on (a non-finite loss); the message says where and what is kept."""
+
+
+def _run_meta(config: TrainConfig, dataset: dict) -> dict:
+    sha = dataset.get("sha256") or data_lib.content_hash(dataset["arrays"])
+    return {"train": dataclasses.asdict(config), "dataset": dataset["config"], "dataset_sha256": sha}
 
 
 def _fixed(meta: dict) -> dict:
     return {"train": {k: v for k, v in meta["train"].items() if k not in _EXTENSIBLE}, "dataset": meta["dataset"]}
 
 
-def train(config: TrainConfig, dataset: dict, run_dir, log=print, resume: bool = True) -> tuple[dict, dict]:
-    """Train (resuming from `run_dir`'s latest checkpoint if there is one); returns (params, run metadata)."""
-    run_dir = pathlib.Path(run_dir)
-    meta = _run_meta(config, dataset["config"])
-    meta_path = run_dir / "run.json"
-    if meta_path.is_file():
-        saved, wanted = _fixed(json.loads(meta_path.read_text())), _fixed(meta)
-        if saved != wanted:
-            diff = sorted(k for part in ("train", "dataset") for k in set(saved[part]) | set(wanted[part])
-                          if saved[part].get(k) != wanted[part].get(k))
-            raise CheckpointError(f"run directory {str(run_dir)!r} holds a run with another config (differs in "
-                                  f"{', '.join(diff)}); use a new --run-dir or the same options")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    meta_path.write_text(json.dumps(meta, indent=2, sort_keys=True))
+def _saved_meta(path: pathlib.Path) -> dict:
+    try:
+        saved = json.loads(path.read_text())
+        if not (isinstance(saved, dict) and isinstance(saved.get("train"), dict)
+                and isinstance(saved.get("dataset"), dict)):
+            raise ValueError("no train and dataset sections")
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise CheckpointError(f"{str(path)!r} is damaged ({type(e).__name__}: {str(e)[:80]}): the run's settings are "
+                              "unknown; use a new --run-dir") from None
+    return saved
 
+
+def _check_run_dir(run_dir: pathlib.Path, meta: dict) -> None:
+    """The run directory holds nothing, or this run: the same settings and the same dataset content."""
+    meta_path = run_dir / "run.json"
+    if not meta_path.is_file():
+        others = [name for name in ("config.yaml", "sweep.yaml", "experiment.yaml") if (run_dir / name).exists()]
+        if others or (run_dir / "checkpoints").exists():
+            what = others[0] if others else "checkpoints/"
+            raise CheckpointError(f"--run-dir {str(run_dir)!r} holds {what} but no run.json: it is not a "
+                                  "tgrf-predictor run directory; use a new --run-dir")
+        return
+    saved = _saved_meta(meta_path)
+    saved_fixed, wanted = _fixed(saved), _fixed(meta)
+    if saved_fixed != wanted:
+        diff = sorted(k for part in ("train", "dataset") for k in set(saved_fixed[part]) | set(wanted[part])
+                      if saved_fixed[part].get(k) != wanted[part].get(k))
+        raise CheckpointError(f"run directory {str(run_dir)!r} holds a run with another config (differs in "
+                              f"{', '.join(diff)}); use a new --run-dir or the same options")
+    if saved.get("dataset_sha256") != meta["dataset_sha256"]:
+        raise CheckpointError(f"run directory {str(run_dir)!r} was trained on another dataset (content SHA-256 "
+                              f"{str(saved.get('dataset_sha256'))[:12]}, this one {meta['dataset_sha256'][:12]}); "
+                              "resume with the same dataset file, or use a new --run-dir")
+
+
+def _steps(ckpt_dir: pathlib.Path) -> list[int]:
+    if not ckpt_dir.is_dir():
+        return []
+    reader = Checkpointer(ckpt_dir, create=False)
+    try:
+        return reader.all_steps()
+    finally:
+        reader.close()
+
+
+def train(config: TrainConfig, dataset: dict, run_dir, log=print, resume: bool = True,
+          from_step: int | None = None) -> tuple[dict, dict]:
+    """Train (resuming from `run_dir`'s latest checkpoint if there is one, or from checkpoint `from_step`, whose
+    later checkpoints are deleted); returns (params, run metadata). The process holds the run directory's lock
+    (`tgrf_jax.storage.lock`) while it writes there; everything is checked before run.json is written."""
+    run_dir = pathlib.Path(run_dir)
+    data_lib.check_arrays(dataset["arrays"], "dataset")
+    meta = _run_meta(config, dataset)
+    _check_run_dir(run_dir, meta)
+    with exclusive(run_dir):
+        _check_run_dir(run_dir, meta)  # again, now that no other process can write it
+        steps = _steps(run_dir / "checkpoints") if resume else []
+        if from_step is not None and from_step not in steps:
+            raise CheckpointError(f"--from-step {from_step}: {str(run_dir / 'checkpoints')!r} holds no checkpoint "
+                                  f"of update {from_step}; it holds: {', '.join(map(str, steps)) or 'none'}")
+        step = from_step if from_step is not None else (steps[-1] if steps else None)
+        if step is not None and step > config.updates:
+            raise CheckpointError(f"--updates {config.updates} is below the progress of {str(run_dir)!r}: its "
+                                  f"checkpoint of update {step} would be labelled {config.updates}; give --updates "
+                                  f">= {step}, or --from-step N to go back to an earlier checkpoint (it holds: "
+                                  f"{', '.join(map(str, steps))})")
+        write_atomic(run_dir / "run.json", json.dumps(meta, indent=2, sort_keys=True))
+        return _train(config, dataset, run_dir, meta, step, log)
+
+
+def _train(config: TrainConfig, dataset: dict, run_dir: pathlib.Path, meta: dict, step, log):
     arrays = dataset["arrays"]
     train_index, val_index = data_lib.split_index(arrays)
     log(f"windows: {len(train_index):,} train, {len(val_index):,} held out")
     data = data_lib.device_arrays(arrays)
     ckpt = Checkpointer(run_dir / "checkpoints", keep=2)
     state = init_state(config)
-    if resume and ckpt.latest_step() is not None:
-        state = ckpt.restore(state)
-        log(f"resumed from {run_dir / 'checkpoints'} at update {int(state.step)}")
-    index = jnp.asarray(train_index)
-    start = time.perf_counter()
-    while int(state.step) < config.updates:
-        left = config.updates - int(state.step)
-        before, tick = int(state.step), time.perf_counter()
-        state, loss = train_chunk(state, data, index, config, min(left, config.log_every))
-        step = int(state.step)
-        rate = (step - before) / (time.perf_counter() - tick)  # this chunk's (the first includes compilation)
-        lr = schedule(config)(step - 1)
-        log(f"update {step:>6}/{config.updates}  loss {float(loss):8.4f}  lr {float(lr):.2e}  "
-            f"{rate:6.1f} updates/s ({rate * config.batch_size:,.0f} windows/s)")
-        if step % config.checkpoint_every == 0 or step == config.updates:
-            ckpt.save(step, state)
-    ckpt.close()
+    try:
+        if step is not None:
+            state = ckpt.restore(state, step)
+            ckpt.delete_after(step)
+            log(f"resumed from {run_dir / 'checkpoints'} at update {int(state.step)}")
+        index = jnp.asarray(train_index)
+        start = time.perf_counter()
+        while int(state.step) < config.updates:
+            left = config.updates - int(state.step)
+            before, tick = int(state.step), time.perf_counter()
+            state, loss = train_chunk(state, data, index, config, min(left, config.log_every))
+            step = int(state.step)
+            if not np.isfinite(float(loss)):  # nothing of this chunk is saved: its weights are not finite
+                kept = ckpt.latest_step()
+                raise TrainingError(f"the training loss is {float(loss)} in the updates {before + 1}..{step}: the "
+                                    f"training diverged (lower --lr) or the data is not finite; the checkpoints up "
+                                    f"to update {kept} in {str(run_dir / 'checkpoints')!r} are kept")
+            rate = (step - before) / (time.perf_counter() - tick)  # this chunk's (the first includes compilation)
+            lr = schedule(config)(step - 1)
+            log(f"update {step:>6}/{config.updates}  loss {float(loss):8.4f}  lr {float(lr):.2e}  "
+                f"{rate:6.1f} updates/s ({rate * config.batch_size:,.0f} windows/s)")
+            if step % config.checkpoint_every == 0 or step == config.updates:
+                ckpt.save(step, state)
+    finally:
+        ckpt.close()
     meta["train_seconds_this_process"] = time.perf_counter() - start
     evaluate = make_evaluator(data)
     metrics = evaluate(state.params, eval_subset(val_index, config.eval_windows))

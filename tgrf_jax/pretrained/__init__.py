@@ -68,7 +68,7 @@ def load(name_or_path: str):
     network (a mismatch names both shapes)."""
     import jax
 
-    from tgrf_jax.train.ppo import make_network_for
+    from tgrf_jax.policies import make_network_for
 
     path = resolve(name_or_path)
     config = TrainConfig.from_dict(load_yaml(path / "config.yaml"))
@@ -95,7 +95,7 @@ def export(run_dir, dest, meta: dict | None = None, step: int | None = None) -> 
     """Write the policy of a tgrf-train run directory (latest checkpoint unless `step`) to `dest` atomically."""
     import jax
 
-    from tgrf_jax.train.loop import restore_run
+    from tgrf_jax.train.run_dir import restore_run
 
     config, state = restore_run(run_dir, step)
     dest = pathlib.Path(dest)

@@ -6,11 +6,33 @@ the global backend or shows stray figures in notebooks.
 """
 
 from tgrf_jax.render.draw import (
-    DANGER_COLOR, GOAL_COLOR, OUTCOME_COLORS, PATH_COLOR, PRED_COLOR, ROBOT_COLOR, TERM_COLORS, TERM_LABELS,
-    UNSEEN_COLOR, UNSEEN_EDGE, VISIBLE_COLOR, VISIBLE_EDGE, FramePainter, draw_frame, new_figure, plot_frame,
-    plot_reward_terms, view_limits,
+    DANGER_COLOR,
+    GOAL_COLOR,
+    OUTCOME_COLORS,
+    PATH_COLOR,
+    PRED_COLOR,
+    ROBOT_COLOR,
+    TERM_COLORS,
+    TERM_LABELS,
+    UNSEEN_COLOR,
+    UNSEEN_EDGE,
+    VISIBLE_COLOR,
+    VISIBLE_EDGE,
+    FramePainter,
+    draw_frame,
+    new_figure,
+    plot_frame,
+    plot_reward_terms,
+    view_limits,
 )
-from tgrf_jax.render.export import animate, ffmpeg_path, gif_bytes, save_episode, show, to_jshtml
+from tgrf_jax.render.export import (
+    animate,
+    ffmpeg_path,
+    gif_bytes,
+    save_episode,
+    show,
+    to_jshtml,
+)
 from tgrf_jax.render.record import Episode, eval_key, record_episodes
 
 __all__ = [

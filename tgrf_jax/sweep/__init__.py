@@ -7,9 +7,21 @@ the devices, `run` trains them through the runner shared with tgrf-train, `repor
 """
 
 from tgrf_jax.config import griddable_fields
-from tgrf_jax.sweep.grid import GridAxis, RunSpec, SweepSpec, load_sweep, parse_grid, parse_seeds
+from tgrf_jax.sweep.grid import (
+    GridAxis,
+    RunSpec,
+    SweepSpec,
+    load_sweep,
+    parse_grid,
+    parse_seeds,
+)
 from tgrf_jax.sweep.program import SweepBatch, SweepProgram, get_program
-from tgrf_jax.sweep.report import format_summary_markdown, plot_sweep, training_tail, write_results
+from tgrf_jax.sweep.report import (
+    format_summary_markdown,
+    plot_sweep,
+    training_tail,
+    write_results,
+)
 from tgrf_jax.sweep.run import SweepResult, default_sweep_dir, run_sweep
 
 __all__ = [

@@ -11,6 +11,7 @@ import dataclasses
 import difflib
 import functools
 import itertools
+import math
 import pathlib
 
 from tgrf_jax.config import ConfigError, TrainConfig, config_fields, griddable_fields
@@ -80,6 +81,10 @@ def parse_grid(items: list[str], base: dict | None = None) -> tuple[GridAxis, ..
     return tuple(axes)
 
 
+# every run is a directory and a config checked before anything runs; beyond this a sweep is a typo
+MAX_RUNS = 1_000
+
+
 def parse_seeds(text: str | int | None, base_seed: int) -> tuple[int, ...]:
     """`--seeds 3`: run.seed, run.seed + 1, run.seed + 2; `--seeds 0,5,7`: exactly those (a list needs a comma)."""
     if text is None:
@@ -99,7 +104,11 @@ def parse_seeds(text: str | int | None, base_seed: int) -> tuple[int, ...]:
     else:
         if numbers[0] < 1:
             raise ConfigError(f"--seeds {text}: the number of seeds must be >= 1 (a single seed s: --seeds s,)")
+        if numbers[0] > MAX_RUNS:
+            raise ConfigError(f"--seeds {text}: too many seeds; allowed: 1 .. {MAX_RUNS:,}")
         seeds = tuple(base_seed + i for i in range(numbers[0]))
+    if len(seeds) > MAX_RUNS:
+        raise ConfigError(f"--seeds: {len(seeds):,} seeds are too many; allowed: 1 .. {MAX_RUNS:,}")
     if len(set(seeds)) != len(seeds):
         raise ConfigError(f"--seeds {text}: repeated seed")
     for s in seeds:
@@ -152,6 +161,9 @@ class SweepSpec:
         base = TrainConfig.from_dict(apply_overrides(data, list(overrides))).to_dict()
         axes = parse_grid(list(grid), base)
         spec = cls(base, axes, parse_seeds(seeds, base["run"]["seed"]), layout)
+        count = len(spec.seeds) * math.prod(len(a.values) for a in axes)
+        if count > MAX_RUNS:
+            raise ConfigError(f"the grid and seeds give {count:,} runs; allowed: at most {MAX_RUNS:,} per sweep")
         spec.runs()  # validates every run config (combinations included)
         return spec
 
@@ -221,4 +233,15 @@ def load_sweep(sweep_dir) -> SweepSpec:
     path = pathlib.Path(sweep_dir) / SWEEP_FILE
     if not path.is_file():
         raise ConfigError(f"{str(path)!r} does not exist: {str(sweep_dir)!r} is not a tgrf-sweep directory")
-    return SweepSpec.from_dict(load_yaml(path))
+    data = load_yaml(path)
+    try:
+        spec = SweepSpec.from_dict(data)
+    except ConfigError as e:
+        raise ConfigError(f"{str(path)!r}: {e}") from None
+    recorded = data.get("runs")
+    names = [r.name for r in spec.runs()]
+    if not isinstance(recorded, list) or [r.get("name") if isinstance(r, dict) else r for r in recorded] != names:
+        # its checkpoints, run directories and results belong to the runs it was written with
+        raise ConfigError(f"{str(path)!r} was edited: its grid and seeds give {len(names)} runs ({names[0]}, ...) "
+                          f"that are not the runs it records; restore it, or start a new sweep with --out")
+    return spec

@@ -16,7 +16,6 @@ sweep and the tgrf-train run, a resumed sweep and an uninterrupted one, and equa
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from typing import Any
 
@@ -105,11 +104,12 @@ class SweepProgram:
 
     def __init__(self, config: TrainConfig, devices):
         import jax
-        from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+        from jax.sharding import Mesh, NamedSharding
+        from jax.sharding import PartitionSpec as P
 
         from tgrf_jax.env import CrowdNavEnv
         from tgrf_jax.evaluate import run_episodes
-        from tgrf_jax.train.policy import LearnedPolicy
+        from tgrf_jax.policies.learned import LearnedPolicy
         from tgrf_jax.train.ppo import make_train
 
         self.config = config
@@ -134,9 +134,9 @@ class SweepProgram:
         self.init_one = jax.jit(trainer.init)
 
         def chunk(ts, n_updates):
-            return smap(_per_run(functools.partial(trainer.run_updates, n_updates=n_updates)), 1)(ts)
+            return smap(_per_run(trainer.run_updates, n_batched=1), 1, replicated_last=True)(ts, n_updates)
 
-        self.chunk = jax.jit(chunk, static_argnums=1, donate_argnums=0)
+        self.chunk = jax.jit(chunk, donate_argnums=0)
         net = trainer.net
         self.eval_env = CrowdNavEnv(dataclasses.replace(config.env, track_future_intrusion=True), config.reward)
 
@@ -147,15 +147,17 @@ class SweepProgram:
             return smap(_per_run(one, n_batched=2), 2, replicated_last=True)(params, env_params, key)
 
         self.eval_stats = jax.jit(eval_stats, static_argnums=3)
-        self.compiled: dict[tuple, Any] = {}  # (n_updates, G_pad) -> AOT-compiled chunk
+        self.compiled: dict[int, Any] = {}  # G_pad -> AOT-compiled chunk(state, n_updates)
 
-    def compiled_chunk(self, state, n: int):
-        """(compiled chunk for `n` updates at this batch size, compile seconds or None if cached)."""
-        key = (n, int(np.shape(state.update)[0]))
+    def compiled_chunk(self, state):
+        """(compiled chunk at this batch size, taking the update count as an argument; compile seconds or None
+        if cached)."""
+        key = int(np.shape(state.update)[0])
         if key in self.compiled:
             return self.compiled[key], None
         c0 = time.perf_counter()
-        self.compiled[key] = self.chunk.lower(state, n).compile()
+        compiled = self.chunk.lower(state, np.int32(1)).compile()
+        self.compiled[key] = lambda state, n: compiled(state, np.int32(n))
         return self.compiled[key], time.perf_counter() - c0
 
 
@@ -192,7 +194,7 @@ def barrier(name: str) -> None:
 
 def evaluate_runs(program: SweepProgram, runs, params, g_pad: int, episodes: int, seed: int) -> list[dict]:
     """The final evaluation of every run in one batched program: per run the same episodes (keys) and env
-    parameters as `tgrf_jax.train.loop.evaluate_state` / `tgrf_jax.evaluate.evaluate` use for that run alone."""
+    parameters as `tgrf_jax.evaluate.evaluate_state` use for that run alone."""
     import jax
 
     from tgrf_jax.env import CrowdNavEnv
@@ -233,7 +235,7 @@ def _restore_stacked(checkpointer, trainer, keys, hparams, step: int):
     """A sweep checkpoint (every run's state along a leading run axis) on the host, and the update it holds."""
     import jax
 
-    from tgrf_jax.train.checkpoint import CheckpointError
+    from tgrf_jax.storage.checkpoint import CheckpointError
 
     template = jax.eval_shape(jax.vmap(trainer.init), keys, hparams)
     host_state = _host(checkpointer.restore(template, step))
@@ -271,8 +273,8 @@ class SweepBatch:
         host_state, update = _restore_stacked(checkpointer, self.program.trainer, self.keys, self.hparams, step)
         return self._placed(host_state), update
 
-    def compiled_chunk(self, state, n: int):
-        return self.program.compiled_chunk(state, n)
+    def compiled_chunk(self, state):
+        return self.program.compiled_chunk(state)
 
     def run_metrics(self, metrics) -> list[dict]:
         metrics = _host(metrics)
@@ -306,7 +308,7 @@ class SequentialBatch:
     def __init__(self, runs, devices):
         import jax
 
-        from tgrf_jax.train.loop import SoloProgram
+        from tgrf_jax.train.run_dir import SoloProgram
 
         if jax.process_count() > 1:
             raise ConfigError("the sequential layout runs on one host; use the batched layout for multi-host sweeps")
@@ -330,11 +332,11 @@ class SequentialBatch:
         host_state, update = _restore_stacked(checkpointer, self.train.trainer, self.keys, self.hparams, step)
         return [self.train.place(_take(host_state, i)) for i in range(self.num_runs)], update
 
-    def compiled_chunk(self, states, n: int):
-        fn, compile_s = self.solo.compiled_chunk(states[0], n)
+    def compiled_chunk(self, states):
+        fn, compile_s = self.solo.compiled_chunk(states[0])
 
-        def each(states):
-            out = [fn(s) for s in states]
+        def each(states, n):
+            out = [fn(s, n) for s in states]
             return [o[0] for o in out], [o[1] for o in out]
 
         return each, compile_s
@@ -346,7 +348,7 @@ class SequentialBatch:
         return _stack([_host(s) for s in states])
 
     def evaluate(self, states, episodes: int, seed: int) -> list[dict]:
-        from tgrf_jax.train.loop import evaluate_state
+        from tgrf_jax.evaluate import evaluate_state
 
         net = self.train.trainer.net  # one compiled evaluation for every run
         return [evaluate_state(r.config, s, episodes, seed, net=net) for r, s in zip(self.runs, states)]

@@ -22,7 +22,7 @@ GRID_PLOT_FILE = "grid_metrics.png"
 CURVES_FILE = "learning_curves.png"
 RUNS_DIR = "runs"
 
-# Metrics of the summary table: final evaluation (SPEC A.4) and the end of training.
+# Metrics of the summary table: final evaluation (docs/reference.md, "Metrics") and the end of training.
 EVAL_METRICS = ("success_rate", "collision_rate", "timeout_rate", "nav_time", "path_length", "itr_future",
                 "itr_disc", "intrusion_dist_future", "intrusion_dist_disc", "mean_return")
 TRAIN_METRICS = ("train_return", "train_success_rate")

@@ -1,4 +1,4 @@
-"""`run_sweep`: the runs of a `SweepSpec` trained together by the runner (`tgrf_jax.train.runner`).
+"""`run_sweep`: the runs of a `SweepSpec` trained together by the runner (`tgrf_jax.train.outer_loop`).
 
 Sweep directory:
     sweep.yaml             the grid: axes, seeds, base config, and the run list (name, grid point, seed, values)
@@ -9,7 +9,7 @@ Sweep directory:
     checkpoints/<update>/  orbax checkpoints of the stacked TrainState of all G runs (no padding)
     runs/<name>/           one tgrf-train run directory per run: config.yaml, metrics.csv, eval.json and the final
                            checkpoint (so `tgrf-eval runs/<name>` works)
-    evals.csv              final evaluation of every run (SPEC A.4 metrics + final training return/success)
+    evals.csv              final evaluation of every run (the paper's metrics + final training return/success)
     eval_curves.csv        with run.eval_every: test-episode metrics of every run during training (long format)
     eval_curves.png        those curves (SR, NT, PL, ITR) per grid point, mean over seeds with a +-std band
     summary.csv / .md      mean and std over seeds for every grid point
@@ -27,15 +27,32 @@ from typing import Any, Callable
 import yaml
 
 from tgrf_jax.config import ConfigError, TrainConfig
-from tgrf_jax.files import write_atomic
-from tgrf_jax.sweep.grid import SWEEP_FILE, SweepSpec, _fmt_value, check_layout, load_sweep
+from tgrf_jax.storage.checkpoint import Checkpointer, CheckpointError, tree_digest
+from tgrf_jax.storage.files import write_atomic
+from tgrf_jax.storage.lock import exclusive
+from tgrf_jax.sweep.grid import (
+    SWEEP_FILE,
+    SweepSpec,
+    _fmt_value,
+    check_layout,
+    load_sweep,
+)
 from tgrf_jax.sweep.program import SequentialBatch, SweepBatch, barrier
-from tgrf_jax.sweep.report import RUNS_DIR, format_summary_markdown, plot_sweep, write_results
-from tgrf_jax.train.checkpoint import CheckpointError, Checkpointer, tree_digest
+from tgrf_jax.sweep.report import (
+    RUNS_DIR,
+    format_summary_markdown,
+    plot_sweep,
+    write_results,
+)
 from tgrf_jax.train.curves import CURVE_FIELDS, EVAL_CURVE_CSV, PeriodicEvaluation
-from tgrf_jax.train.lock import exclusive
-from tgrf_jax.train.progress import CSV_FIELDS, CsvWriter, LogFile, ProgressPrinter, run_rows
-from tgrf_jax.train.runner import train_runs
+from tgrf_jax.train.outer_loop import train_runs
+from tgrf_jax.train.progress import (
+    CSV_FIELDS,
+    CsvWriter,
+    LogFile,
+    ProgressPrinter,
+    run_rows,
+)
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
@@ -101,7 +118,7 @@ def run_sweep(
 
     `devices` (default: all, `jax.devices()`; or the first `num_devices` of them) carry the run axis.
     `stop_after_updates` ends early, as an interruption would (for tests). Process 0 holds the sweep directory's
-    lock while it writes there (`tgrf_jax.train.lock`)."""
+    lock while it writes there (`tgrf_jax.storage.lock`)."""
     import jax
 
     sweep_dir = pathlib.Path(sweep_dir)
@@ -156,6 +173,16 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after
         for r, d in zip(runs, run_dirs):
             d.mkdir(parents=True, exist_ok=True)
             (d / CONFIG_FILE).write_text(r.config.to_yaml())
+    if resume and main:
+        missing = [(r, d) for r, d in zip(runs, run_dirs) if not (d / CONFIG_FILE).is_file()]
+        started = any(p.name.isdigit() and p.name != "0" for p in ckpt_dir.iterdir()) if ckpt_dir.is_dir() else False
+        if missing and started:  # its metrics.csv and eval.json cannot be rebuilt from the sweep's checkpoints
+            raise ConfigError(f"run directory {str(missing[0][1])!r} of the sweep is missing or has no "
+                              f"{CONFIG_FILE}{f' (and {len(missing) - 1} more)' if len(missing) > 1 else ''}; "
+                              "restore it, or start the sweep again with --out")
+        for r, d in missing:  # a sweep killed while it created them
+            d.mkdir(parents=True, exist_ok=True)
+            write_atomic(d / CONFIG_FILE, r.config.to_yaml())
     if switched_from is not None and main:
         write_atomic(sweep_dir / SWEEP_FILE, yaml.safe_dump(spec.to_dict(), sort_keys=False))
     barrier("tgrf_sweep_written")
@@ -185,9 +212,10 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after
         if main:
             curve_fields = ["run", "point", "seed"] + [a.name for a in spec.axes] + list(CURVE_FIELDS)
             curve_writers.append(CsvWriter(sweep_dir / CURVES_FILE, lambda rows: [dict(row, **c) for row, c in
-                                                                                zip(rows, columns)], curve_fields))
-            curve_writers += [CsvWriter(d / EVAL_CURVE_CSV, lambda rows, i=i: rows[i:i + 1], CURVE_FIELDS)
-                              for i, d in enumerate(run_dirs)]
+                                                                                zip(rows, columns)], curve_fields,
+                                           every_chunk=False))
+            curve_writers += [CsvWriter(d / EVAL_CURVE_CSV, lambda rows, i=i: rows[i:i + 1], CURVE_FIELDS,
+                                        every_chunk=False) for i, d in enumerate(run_dirs)]
         state_fns.append(PeriodicEvaluation(program, run_cfg.eval_every, run_cfg.curve_episodes, run_cfg.eval_seed,
                                             curve_writers, say))
     try:

@@ -3,7 +3,7 @@
     trainer = make_train(config)                      # static choices: shapes, network, env code paths
     hparams = trainer.default_hparams                 # traced numeric settings (vmap over them for sweeps)
     state = trainer.init(key, hparams)                # TrainState: params, optimiser, envs, carries, RNG
-    state, metrics = trainer.run_chunk(state, 10)     # 10 PPO updates in one jitted lax.scan; reduced scalars
+    state, metrics = trainer.run_chunk(state, 10)     # 10 PPO updates (count traced); reduced scalars
     state, metrics = trainer.train(key, hparams)      # the whole run (pure; jit / vmap it)
 
 One update: roll out `num_steps` steps in `num_envs` environments (the recurrent carry is reset where the
@@ -30,12 +30,20 @@ import optax
 from flax import struct
 
 from tgrf_jax.config import PPOConfig, TrainConfig
+from tgrf_jax.env import (
+    COLLISION,
+    SUCCESS,
+    TIMEOUT,
+    CrowdNavEnv,
+    EnvParams,
+    EnvState,
+    Obs,
+)
 from tgrf_jax.fields import check_traced, traced_pytree, traced_values
-from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams, EnvState, Obs
-from tgrf_jax.nets import ActorCritic, make_network
+from tgrf_jax.policies import make_network_for
+from tgrf_jax.policies.nets import ActorCritic
 from tgrf_jax.train import shards
 from tgrf_jax.train.shards import SHARD_AXIS
-
 
 HParams = traced_pytree(
     "HParams", PPOConfig, first=(("env", EnvParams),), module=__name__,
@@ -217,14 +225,28 @@ def split_envs(x, n):
     return x.reshape((n, x.shape[0] // n) + x.shape[1:])
 
 
-def clip_by_global_norm(grads, max_norm):
-    """Scale `grads` down to global norm `max_norm` (traced); returns (clipped grads, pre-clip norm).
+def make_optimizer(adam_eps: float):
+    """`(learning_rate, max_grad_norm) -> optax optimiser`: the gradient clipped to global norm `max_grad_norm`,
+    then an Adam step of size `learning_rate`.
 
-    Kept by hand rather than `optax.clip_by_global_norm`: optax rescales each leaf as `g / norm * max_norm`, this
-    as `g * (max_norm / norm)`, and the float32 rounding difference would change every trained run's numbers."""
-    g_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree_util.tree_leaves(grads)))
-    scale = jnp.where(g_norm > max_norm, max_norm / jnp.maximum(g_norm, 1e-12), 1.0)
-    return jax.tree_util.tree_map(lambda g: g * scale, grads), g_norm
+    Both are injected hyper-parameters: they live in the optimiser state (`opt_state.hyperparams`), so the trainer
+    writes traced values there (the scheduled rate of the update, `HParams.max_grad_norm`) and sweeps vmap over
+    them like any other leaf of `HParams`."""
+    return optax.inject_hyperparams(
+        lambda learning_rate, max_grad_norm: optax.chain(
+            optax.clip_by_global_norm(max_grad_norm), optax.adam(learning_rate, eps=adam_eps)))
+
+
+# Newer optax names the global norm optax.tree.norm and deprecates optax.global_norm; the oldest optax allowed
+# (pyproject.toml) has only the latter.
+global_norm = getattr(getattr(optax, "tree", None), "norm", None) or optax.global_norm
+
+
+def with_hyperparams(opt_state, **values):
+    """`opt_state` of `make_optimizer` with its injected hyper-parameters set to `values` (float32 scalars, so the
+    state keeps its types through the update's scans)."""
+    hyperparams = dict(opt_state.hyperparams, **{k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
+    return opt_state._replace(hyperparams=hyperparams)
 
 
 def learning_rate(ppo: PPOConfig, lr, update, num_updates: int):
@@ -275,7 +297,8 @@ class Trainer:
         """TrainState prefix of NamedShardings (per-env fields split over the mesh), or None without a mesh."""
         if self.mesh is None:
             return None
-        from jax.sharding import NamedSharding, PartitionSpec as P
+        from jax.sharding import NamedSharding
+        from jax.sharding import PartitionSpec as P
 
         return field_prefix(NamedSharding(self.mesh, P(SHARD_AXIS)), NamedSharding(self.mesh, P()))
 
@@ -323,7 +346,7 @@ class Trainer:
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(k_env, p.num_envs), hparams.env)
         return TrainState(
             params=params,
-            opt_state=self.optimizer.init(params),
+            opt_state=self.optimizer(**self.optimizer_hparams(hparams, 0)).init(params),
             env_state=env_state,
             obs=obs,
             carry=self.net.initialize_carry(p.num_envs),
@@ -336,9 +359,14 @@ class Trainer:
         )
 
     @property
-    def optimizer(self) -> optax.GradientTransformation:
-        """Adam's moment estimates; the step `-lr * update` is applied by `update` (the rate is traced)."""
-        return optax.scale_by_adam(eps=self.config.ppo.adam_eps)
+    def optimizer(self):
+        """`(learning_rate, max_grad_norm) -> optax optimiser` (`make_optimizer`): clipping, then Adam."""
+        return make_optimizer(self.config.ppo.adam_eps)
+
+    def optimizer_hparams(self, hp: HParams, update) -> dict:
+        """The optimiser's injected hyper-parameters for update number `update` (traced)."""
+        return {"learning_rate": learning_rate(self.config.ppo, hp.lr, update, self.num_updates),
+                "max_grad_norm": hp.max_grad_norm}
 
     # --------------------------------------------------------------------------------------------- rollout
     def rollout(self, ts: TrainState, key):
@@ -399,16 +427,16 @@ class Trainer:
         # --- advantages
         adv, returns = compute_gae(traj.reward, traj.value, traj.done, traj.truncated, traj.final_value,
                                    last_value, hp.gamma, hp.gae_lambda)
-        if p.norm_adv:
-            if self.num_shards == 1:  # jnp.std's own formula: keeps the unsharded program bit for bit
-                adv = (adv - adv.mean()) / (adv.std() + 1e-5)
-            else:
-                adv_mean = self._mean(adv)
-                adv = (adv - adv_mean) / (jnp.sqrt(self._mean(jnp.square(adv - adv_mean))) + 1e-5)
+        if p.norm_adv:  # moments of the whole batch: all shards' advantages
+            adv_mean = self._mean(adv)
+            adv = (adv - adv_mean) / (jnp.sqrt(self._mean(jnp.square(adv - adv_mean))) + 1e-5)
         return_stats = ts.return_stats.update(returns, self._mean) if p.norm_value else ts.return_stats
         value_stats = return_stats if p.norm_value else None
 
-        lr = learning_rate(p, hp.lr, ts.update, self.num_updates)
+        # the rate (constant within an update) and the clipping norm enter the optimiser state as traced values
+        opt_hparams = self.optimizer_hparams(hp, ts.update)
+        optimizer = self.optimizer(**opt_hparams)
+        opt_state = with_hyperparams(ts.opt_state, **opt_hparams)
         # --- epochs x minibatches over envs (whole sequences)
         n_mb = p.num_minibatches
         loss_grad = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
@@ -439,10 +467,9 @@ class Trainer:
         def minibatch_step(carry, mb):
             params, opt_state = carry
             (loss, aux), grads = self._pmean(minibatch_grad(params, mb))
-            grads, g_norm = clip_by_global_norm(grads, hp.max_grad_norm)
-            updates, opt_state = self.optimizer.update(grads, opt_state, params)
-            params = optax.apply_updates(params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
-            return (params, opt_state), dict(aux, loss=loss, grad_norm=g_norm)
+            updates, opt_state = optimizer.update(grads, opt_state, params)
+            params = optax.apply_updates(params, updates)
+            return (params, opt_state), dict(aux, loss=loss, grad_norm=global_norm(grads))  # before clipping
 
         def epoch(carry, k):
             perm = jax.random.permutation(self.shard_key(k), p.shard_envs)
@@ -459,21 +486,31 @@ class Trainer:
             return jax.lax.scan(minibatch_step, carry, mbs)
 
         (params, opt_state), losses = jax.lax.scan(
-            epoch, (ts.params, ts.opt_state), jax.random.split(k_perm, p.update_epochs)
+            epoch, (ts.params, opt_state), jax.random.split(k_perm, p.update_epochs)
         )
         metrics = {k: jnp.mean(v) for k, v in losses.items()}
-        metrics.update(self._psum(ep), lr=jnp.asarray(lr, jnp.float32), reward_mean=self._mean(traj.reward))
+        metrics.update(self._psum(ep), lr=opt_state.hyperparams["learning_rate"], reward_mean=self._mean(traj.reward))
         ts = ts.replace(params=params, opt_state=opt_state, return_stats=return_stats, key=key,
                         update=ts.update + 1)
         return ts, metrics
 
     # --------------------------------------------------------------------------------------- chunks / train
-    def run_updates(self, ts: TrainState, n_updates: int) -> tuple[TrainState, dict]:
-        """`n_updates` updates in one lax.scan (pure). Metrics reduced over the chunk: episode fields summed,
-        the rest averaged over updates."""
+    def run_updates(self, ts: TrainState, n_updates) -> tuple[TrainState, dict]:
+        """`n_updates` updates (pure). The count is traced, so one compiled program runs chunks of any length:
+        a run's log, checkpoint and evaluation periods never compile the trainer again. Metrics are reduced over
+        the chunk: episode fields summed, the rest averaged over updates."""
         def shard_updates(ts):
-            ts, per_update = self._scan_updates(ts, n_updates)
-            return ts, reduce_metrics(per_update)
+            n = jnp.asarray(n_updates, jnp.int32)
+            metrics = {k: jnp.zeros((), jnp.float32) for k in METRIC_NAMES}
+
+            def body(_, carry):
+                ts, sums = carry
+                ts, m = self.update(ts)
+                return ts, {k: sums[k] + m[k] for k in sums}
+
+            ts, sums = jax.lax.fori_loop(0, n, body, (ts, metrics))
+            mean_of = jnp.maximum(n, 1).astype(jnp.float32)
+            return ts, {k: v if k in SUMMED_METRICS else v / mean_of for k, v in sums.items()}
 
         return self.across_shards(shard_updates)(ts)
 
@@ -487,11 +524,6 @@ class Trainer:
         return self.across_shards(lambda ts: self._scan_updates(ts, self.num_updates))(ts)
 
 
-def reduce_metrics(per_update: dict) -> dict:
-    """Chunk metrics: episode counts/sums added over the leading (update) axis, others averaged."""
-    return {k: (jnp.sum(v, axis=0) if k in SUMMED_METRICS else jnp.mean(v, axis=0)) for k, v in per_update.items()}
-
-
 def check_hparams(hparams: HParams) -> None:
     """Concrete `HParams` (batched or not) against the declarations of `PPOConfig`, `EnvConfig` and
     `RewardConfig`; raises ConfigError naming the field and the allowed range."""
@@ -499,19 +531,12 @@ def check_hparams(hparams: HParams) -> None:
     hparams.env.validate()
 
 
-def make_network_for(config: TrainConfig) -> ActorCritic:
-    env_cfg = config.env
-    n = config.network
-    return make_network(n.name, n.size, env_cfg.obs_human_dim, env_cfg.num_humans, frame=n.frame,
-                        rotate_action=env_cfg.kinematics == "holonomic", init_log_std=n.init_log_std)
-
-
 class Train(NamedTuple):
     """What `make_train` returns: a pure `train(key, hparams)` plus the chunking seams."""
 
     train: callable  # (key, hparams) -> (TrainState, per-update metrics)
     init: callable  # (key, hparams) -> TrainState, placed for run_chunk (jitted; concrete hparams are checked)
-    run_chunk: callable  # jitted (TrainState, n_updates static) -> (TrainState, chunk metrics)
+    run_chunk: callable  # jitted (TrainState, n_updates traced) -> (TrainState, chunk metrics); consumes the state
     trainer: Trainer
     default_hparams: HParams
     place: callable  # TrainState from elsewhere (a checkpoint) -> placed for run_chunk
@@ -538,7 +563,8 @@ def make_train(config: TrainConfig, devices="auto") -> Train:
     return Train(
         train=trainer.train,
         init=init,
-        run_chunk=jax.jit(trainer.run_updates, static_argnums=1),
+        # the state is donated: a chunk updates it in place rather than holding two copies
+        run_chunk=jax.jit(trainer.run_updates, donate_argnums=0),
         trainer=trainer,
         default_hparams=trainer.default_hparams,
         place=trainer.place,

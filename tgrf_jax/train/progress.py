@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import math
 import pathlib
 from typing import Callable, Sequence
 
 import numpy as np
 
+from tgrf_jax.fields import ConfigError
+from tgrf_jax.storage.files import write_atomic
 from tgrf_jax.train.ppo import METRIC_NAMES, SUMMED_METRICS
 
 # Columns of metrics.csv: counters and timings, episode outcomes as rates, then the averaged update metrics.
@@ -99,15 +102,20 @@ class ProgressPrinter:
 
 
 class CsvWriter:
-    """progress_fn: appends the rows `rows(metrics)` to a CSV file (header written once)."""
+    """progress_fn: appends the rows `rows(metrics)` to a CSV file (header written once).
 
-    def __init__(self, path, rows: Callable[[ChunkMetrics], list[dict]], fields: Sequence[str] = CSV_FIELDS):
+    `every_chunk`: the file gets a row at every chunk end, so on a resume from update u > 0 it must reach u (a
+    missing or shortened file cannot be rebuilt from a checkpoint). The columns from "update" on are numbers."""
+
+    def __init__(self, path, rows: Callable[[ChunkMetrics], list[dict]], fields: Sequence[str] = CSV_FIELDS,
+                 every_chunk: bool = True):
         self.path, self.rows, self.fields = pathlib.Path(path), rows, list(fields)
+        self.every_chunk = every_chunk
         self.file = None
 
     def _open(self):
         if self.file is None:
-            new = not self.path.is_file()
+            new = not self.path.is_file() or self.path.stat().st_size == 0
             self.file = open(self.path, "a", newline="")
             self.writer = csv.DictWriter(self.file, fieldnames=self.fields)
             if new:
@@ -119,24 +127,104 @@ class CsvWriter:
         self.file.flush()
 
     def truncate(self, update: int) -> float:
-        """Drop the rows after `update` (chunks trained after the checkpoint a run resumes from); returns the
-        last kept row's wall_s, where the resumed run's clock continues."""
-        if not self.path.is_file():
-            return 0.0
-        with open(self.path, newline="") as f:
-            every = list(csv.DictReader(f))
-        rows = [r for r in every if int(float(r["update"])) <= update]
-        if len(rows) < len(every):  # (a finished run resumed keeps its file as it is)
-            with open(self.path, "w", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=self.fields)
-                w.writeheader()
-                w.writerows(rows)
+        """Cut the file back to the checkpoint of `update` a run resumes from, after checking it: a torn last line
+        (a crash mid-write) and exact repeats of a row are dropped; a wrong header, a row with another field count,
+        an unparseable value or updates out of order before the checkpoint raise ConfigError naming the line.
+        Returns the last kept row's wall_s, where the resumed run's clock continues."""
+        rows, changed = self._intact_rows(update)
+        if self.every_chunk and update > 0:
+            reached = max((int(r["update"]) for r in rows), default=None)
+            if reached is None or reached < update:
+                have = "holds no rows" if reached is None else f"ends at update {reached}"
+                raise ConfigError(f"{str(self.path)!r} {have}, but the run resumes from its checkpoint of update "
+                                  f"{update}: the missing rows cannot be rebuilt from a checkpoint; put the file "
+                                  "back, or train the run again in a new directory")
+        if changed:
+            buf = io.StringIO()
+            w = csv.DictWriter(buf, fieldnames=self.fields)
+            w.writeheader()
+            w.writerows(rows)
+            write_atomic(self.path, buf.getvalue())
         return max((float(r.get("wall_s") or 0.0) for r in rows), default=0.0)
+
+    def _intact_rows(self, update: int) -> tuple[list[dict], bool]:
+        """(rows up to `update`, whether the file must be rewritten to hold exactly them)."""
+        if not self.path.is_file():
+            if self.every_chunk and update > 0:
+                raise ConfigError(f"{str(self.path)!r} is missing, but the run resumes from its checkpoint of "
+                                  f"update {update}: its rows cannot be rebuilt from a checkpoint; put the file "
+                                  "back, or train the run again in a new directory")
+            return [], False
+        name = repr(str(self.path))
+        raw = self.path.read_bytes()
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as e:
+            line = raw[:e.start].count(b"\n") + 1
+            raise ConfigError(f"{name} is damaged: line {line} is not UTF-8 text; restore the file or delete that "
+                              "line") from None
+        lines = text.splitlines(keepends=True)
+        torn = bool(lines) and not lines[-1].endswith("\n")  # every row written ends with a line break
+        if torn:
+            lines = lines[:-1]
+        if not lines:
+            return [], True  # (re)written with its header
+        parsed = list(csv.reader(lines))
+        if parsed[0] != self.fields:
+            shown = ",".join(self.fields[:4])
+            raise ConfigError(f"{name} is damaged: line 1 is not its header (expected {shown},...); restore the "
+                              "file or put the header back")
+        first_number = self.fields.index("update") if "update" in self.fields else 0
+        rows, seen, changed, last = [], {}, torn, -1
+        for i, values in enumerate(parsed[1:], start=2):
+            problem = self._check(values, first_number)
+            if problem is None:
+                row = dict(zip(self.fields, values))
+                u = int(float(row["update"]))
+                key = (row.get("run"), u)
+                if seen.get(key) == values:  # an exact repeat of an earlier row (a block appended twice, say)
+                    changed = True
+                    continue
+                if key in seen:
+                    problem = f"it repeats update {u} with other values"
+                elif u < last:
+                    problem = f"its update {u} comes after update {last}"
+            if problem is not None:
+                if last > update:  # past the checkpoint: dropped anyway
+                    return rows, True
+                raise ConfigError(f"{name} is damaged: line {i}: {problem}; restore the file or delete that line")
+            last = u
+            seen[key] = values
+            if u > update:
+                changed = True
+                continue
+            rows.append(row)
+        return rows, changed
+
+    def _check(self, values: list[str], first_number: int) -> str | None:
+        if len(values) != len(self.fields):
+            return f"{len(values)} fields instead of {len(self.fields)}"
+        for field, value in zip(self.fields[first_number:], values[first_number:]):
+            if value == "":
+                continue  # a value the run did not have (None)
+            try:
+                float(value)
+            except ValueError:
+                return f"{field} = {_clip(value)} is not a number"
+        try:
+            int(float(values[self.fields.index("update")]))
+        except (ValueError, OverflowError):
+            return "its update is not a whole number"
+        return None
 
     def close(self) -> None:
         if self.file is not None:
             self.file.close()
             self.file = None
+
+
+def _clip(value: str, limit: int = 40) -> str:
+    return repr(value if len(value) <= limit else value[:limit] + "...")
 
 
 def run_rows(i: int, **columns) -> Callable[[ChunkMetrics], list[dict]]:

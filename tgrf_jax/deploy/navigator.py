@@ -1,0 +1,358 @@
+"""`Navigator`: a trained policy driven by what a robot has (its pose and velocity, the goal, detected humans),
+returning a velocity command in the robot's own kinematics.
+
+It builds the observation as the env does (`tgrf_jax.env.sensing.observe`): humans beyond the sensor range
+(edge to edge) are left out, the rest sorted by centre distance and cut to the network's rows, positions and
+predictions relative to the robot, padding rows zero and masked. Predictions are made from the detections as
+the env makes them from its humans: constant velocity from each detection's velocity, or the learned GST model
+from a 5-frame history kept per tracked human (which is why gst needs track ids). Ground-truth predictions need
+the crowd's true future and are refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from tgrf_jax.config import ConfigError
+from tgrf_jax.deploy.policy import PolicySource, PolicyStep, load_source
+from tgrf_jax.deploy.runtimes import make_runtime
+
+log = logging.getLogger(__name__)
+
+HOLONOMIC_HEADING = np.float32(np.pi / 2)  # what the env keeps a holonomic robot's heading at (its training input)
+SPEED_SANITY = 5.0  # a measured speed above this many times v_max is taken for a unit mistake, not a fast robot
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotState:
+    """The robot's pose and velocity in the world (map) frame: metres, radians counter-clockwise from x, m/s."""
+
+    x: float
+    y: float
+    heading: float
+    vx: float
+    vy: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Detection:
+    """A detected human: world position (m), velocity (m/s), optional radius (m) and optional track id."""
+
+    position: Sequence[float]
+    velocity: Sequence[float]
+    radius: float | None = None
+    id: object = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Decision:
+    """What `Navigator.act` returns.
+
+    command: (2,) float; holonomic: (vx, vy) in m/s, world frame, norm <= v_max; unicycle: (v, omega) in m/s and
+    rad/s, v within +-v_max and omega = dtheta / dt with dtheta within the per-step limit.
+    action: (2,) the network's raw output (what the env would be given).
+    """
+
+    command: np.ndarray
+    action: np.ndarray
+    num_detected: int  # detections passed in
+    num_dropped: int  # of those, dropped for a non-finite number
+    num_in_range: int  # within the sensor range
+    num_used: int  # rows fed to the network (the nearest, at most its capacity)
+
+
+def _vector(value, n: int, name: str, what: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {n} numbers ({what}); got {value!r}") from None
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must be {n} numbers ({what}); got shape {arr.shape}: {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite ({what}); got {arr.tolist()}")
+    return arr
+
+
+def _robot_state(state) -> np.ndarray:
+    """(x, y, heading, vx, vy) from a RobotState, a {'pose', 'velocity'} mapping or 5 numbers."""
+    if isinstance(state, RobotState):
+        state = (state.x, state.y, state.heading, state.vx, state.vy)
+    elif isinstance(state, Mapping):
+        unknown = set(state) - {"pose", "velocity"}
+        if unknown or "pose" not in state or "velocity" not in state:
+            raise ValueError(f"robot_state mapping needs keys 'pose' (x, y, heading) and 'velocity' (vx, vy); got "
+                             f"{sorted(state)}")
+        pose = _vector(state["pose"], 3, "robot_state pose", "x m, y m, heading rad")
+        vel = _vector(state["velocity"], 2, "robot_state velocity", "vx, vy in m/s, world frame")
+        return np.concatenate([pose, vel])
+    return _vector(state, 5, "robot_state", "x m, y m, heading rad, vx m/s, vy m/s")
+
+
+class _GstTracker:
+    """The learned predictor's 5-frame history, one slot per tracked human, as the env keeps it per human index
+    (`tgrf_jax.env.gst.history`): a frame holds the human's position where it was in range, else the env's
+    filler (robot position + 15 m per axis)."""
+
+    def __init__(self, env_config, slots: int):
+        import jax
+
+        from tgrf_jax.env.gst import history, weights
+        from tgrf_jax.env.gst.model import OBS_LEN, predict
+
+        self.obs_len, self.filler = OBS_LEN, np.float32(history.FILLER_OFFSET)
+        self.slots = slots
+        self.weights = weights.for_env(env_config)
+        self._predict = jax.jit(lambda w, pos, vis: predict(w, pos, vis).means)
+        self.reset()
+
+    def reset(self):
+        self.positions = None  # (slots, OBS_LEN, 2) float32
+        self.visible = None  # (slots, OBS_LEN) bool
+        self.robot_hist = None  # (OBS_LEN, 2) the robot position of each frame (the filler's origin)
+        self.owner: list = [None] * self.slots
+        self.last_seen = np.full(self.slots, -10**9)
+        self.frame = 0
+
+    def _slots_for(self, ids) -> list[int]:
+        index = {owner: s for s, owner in enumerate(self.owner) if owner is not None}
+        taken, out = set(), []
+        for tid in ids:
+            if tid in index:
+                out.append(index[tid])
+                taken.add(index[tid])
+                continue
+            out.append(None)
+        for i, tid in enumerate(ids):
+            if out[i] is not None:
+                continue
+            free = [s for s in range(self.slots) if s not in taken
+                    and (self.owner[s] is None or self.frame - self.last_seen[s] >= self.obs_len)]
+            # An integer id in range keeps its own slot, so ids equal to the env's human indices lay the
+            # history out exactly as the env does.
+            if isinstance(tid, (int, np.integer)) and 0 <= tid < self.slots and tid in free:
+                slot = int(tid)
+            elif free:
+                slot = free[0]
+            else:  # every slot holds a human seen in the last frames: the longest unseen one makes room
+                slot = min((s for s in range(self.slots) if s not in taken), key=lambda s: self.last_seen[s])
+                self._forget(slot)
+            if self.owner[slot] is not None and self.owner[slot] != tid:
+                self._forget(slot)
+            self.owner[slot] = tid
+            taken.add(slot)
+            out[i] = slot
+        return out
+
+    def _forget(self, slot: int):
+        if self.positions is not None:
+            self.positions[slot] = self.robot_hist + self.filler
+            self.visible[slot] = False
+
+    def predictions(self, robot_pos: np.ndarray, pos: np.ndarray, ids) -> np.ndarray:
+        """World predictions (M, 5, 2) for the M humans in range at `pos`, after adding this frame."""
+        slots = self._slots_for(ids)
+        frame = np.broadcast_to(robot_pos + self.filler, (self.slots, 2)).copy()
+        seen = np.zeros(self.slots, bool)
+        frame[slots] = pos
+        seen[slots] = True
+        self.last_seen[slots] = self.frame
+        if self.positions is None:
+            self.positions = np.repeat(frame[:, None], self.obs_len, axis=1)
+            self.visible = np.zeros((self.slots, self.obs_len), bool)
+            self.visible[:, -1] = seen
+            self.robot_hist = np.repeat(robot_pos[None], self.obs_len, axis=0)
+            # As the env at an episode start: no human is seen in two frames, so all hold their position.
+            means = np.repeat(self.positions[:, -1:], self.obs_len, axis=1)
+        else:
+            self.positions = np.concatenate([self.positions[:, 1:], frame[:, None]], axis=1)
+            self.visible = np.concatenate([self.visible[:, 1:], seen[:, None]], axis=1)
+            self.robot_hist = np.concatenate([self.robot_hist[1:], robot_pos[None]])
+            means = np.asarray(self._predict(self.weights, self.positions, self.visible))
+        self.frame += 1
+        return means[slots]
+
+
+class Navigator:
+    """Drive a robot with a trained policy.
+
+        nav = Navigator("table1-const_vel-tgrf")         # a pretrained name, a run directory or a tgrf-export dir
+        nav.reset()                                       # at the start of every trip
+        decision = nav.act((x, y, heading, vx, vy), (gx, gy), [Detection((hx, hy), (hvx, hvy), 0.3)])
+        vx, vy = decision.command                         # unicycle policies: v, omega
+
+    runtime: 'jax' (the network jitted), 'onnx' or 'stablehlo' (the files of a tgrf-export directory).
+    default_human_radius: used for detections without a radius (default: the env's largest human radius, so a
+    human is taken as in range no later than the env would).
+    """
+
+    def __init__(self, source: str | PolicySource, *, runtime: str = "jax", step: int | None = None,
+                 threads: int = 1, default_human_radius: float | None = None):
+        self.source = source if isinstance(source, PolicySource) else load_source(source, step=step)
+        env = self.source.config.env
+        if env.predictor == "truth":
+            raise ConfigError("this policy was trained on ground-truth predictions (env.predictor = 'truth'), "
+                              "the crowd's true future that only a simulator has; deploy a const_vel, gst or none "
+                              "policy instead")
+        self.env_config = env
+        self.kinematics = env.kinematics
+        self.dt = float(env.dt)
+        self.capacity = env.num_humans
+        self.runtime_name = runtime
+        self._step_info = PolicyStep(self.source.config, self.source.params)
+        self._run = make_runtime(self.source, runtime, threads)
+        self._k = env.pred_horizon if env.uses_predictions else 0
+        self._steps = (np.arange(1, self._k + 1, dtype=np.float32) * np.float32(env.dt))[None, :, None]
+        radius = env.human_radius_max if default_human_radius is None else default_human_radius
+        if not (math.isfinite(radius) and radius >= 0):
+            raise ConfigError(f"default_human_radius = {radius} must be a finite radius >= 0 m")
+        self.default_human_radius = float(radius)
+        self._gst = _GstTracker(env, self.capacity) if env.predictor == "gst" else None
+        self.dropped_total = 0
+        self.reset()
+
+    def __repr__(self):
+        return (f"Navigator({self.source.config.network.name}/{self.source.config.network.size}, "
+                f"{self.kinematics}, predictor={self.env_config.predictor!r}, runtime={self.runtime_name!r})")
+
+    def reset(self) -> None:
+        """Start a trip: zero recurrent state, empty prediction history."""
+        self.state = np.zeros(self._step_info.state_size, np.float32)
+        if self._gst is not None:
+            self._gst.reset()
+
+    # ------------------------------------------------------------------------------------------ parsing
+
+    def _detections(self, humans, ids):
+        """(pos (M, 2), vel (M, 2), radius (M,), ids or None, detected, dropped) with non-finite rows removed."""
+        if humans is None:
+            humans = []
+        if isinstance(humans, np.ndarray) or (isinstance(humans, Sequence) and humans
+                                              and not isinstance(humans[0], (Detection, Mapping))):
+            arr = np.asarray(humans, dtype=np.float64)
+            if arr.ndim != 2 or arr.shape[1] not in (4, 5):
+                raise ValueError(f"humans as an array must be (M, 4) [x, y, vx, vy] or (M, 5) [x, y, vx, vy, "
+                                 f"radius] in m and m/s; got shape {arr.shape}")
+            pos, vel = arr[:, 0:2], arr[:, 2:4]
+            radius = arr[:, 4] if arr.shape[1] == 5 else np.full(len(arr), self.default_human_radius)
+        else:
+            pos, vel, radius, own_ids = [], [], [], []
+            for i, h in enumerate(humans):
+                if isinstance(h, Mapping):
+                    unknown = set(h) - {"position", "velocity", "radius", "id"}
+                    if unknown or "position" not in h:
+                        raise ValueError(f"humans[{i}] needs 'position' (and 'velocity', optional 'radius', 'id'); "
+                                         f"got keys {sorted(h)}")
+                    h = Detection(h["position"], h.get("velocity", (0.0, 0.0)), h.get("radius"), h.get("id"))
+                elif not isinstance(h, Detection):
+                    raise ValueError(f"humans[{i}] must be a Detection or a mapping; got {type(h).__name__}")
+                p = np.asarray(h.position, np.float64)
+                v = np.asarray(h.velocity, np.float64)
+                if p.shape != (2,) or v.shape != (2,):
+                    raise ValueError(f"humans[{i}]: position and velocity must be 2 numbers each (m, m/s); got "
+                                     f"shapes {p.shape} and {v.shape}")
+                pos.append(p)
+                vel.append(v)
+                radius.append(self.default_human_radius if h.radius is None else float(h.radius))
+                own_ids.append(h.id)
+            pos = np.reshape(pos, (-1, 2))
+            vel = np.reshape(vel, (-1, 2))
+            radius = np.asarray(radius, np.float64)
+            if ids is None and any(t is not None for t in own_ids):
+                ids = own_ids
+        detected = len(pos)
+        if ids is not None:
+            ids = list(ids)
+            if len(ids) != detected:
+                raise ValueError(f"ids has {len(ids)} entries for {detected} humans")
+        finite = np.isfinite(pos).all(1) & np.isfinite(vel).all(1) & np.isfinite(radius)
+        bad = np.flatnonzero(finite & (radius < 0))
+        if len(bad):
+            raise ValueError(f"humans[{bad[0]}] radius = {radius[bad[0]]}: a radius must be >= 0 m")
+        dropped = int(detected - finite.sum())
+        if dropped:
+            keep = np.flatnonzero(finite)
+            pos, vel, radius = pos[keep], vel[keep], radius[keep]
+            ids = [ids[i] for i in keep] if ids is not None else None
+        return pos, vel, radius, ids, detected, dropped
+
+    # ------------------------------------------------------------------------------------------ observation
+
+    def observation(self, robot_state, goal, humans, *, ids=None):
+        """The network's inputs (robot_node, robot_vel, humans, human_mask) for this situation, plus the counts
+        (detected, dropped, in range, used). Advances the GST history: call it once per decision, or use `act`."""
+        rs = _robot_state(robot_state)
+        goal = _vector(goal, 2, "goal", "gx, gy in m, world frame")
+        env = self.env_config
+        v_max = np.float32(env.robot_v_max)
+        if math.hypot(rs[3], rs[4]) > SPEED_SANITY * v_max:
+            raise ValueError(f"robot_state velocity ({rs[3]}, {rs[4]}) is over {SPEED_SANITY:g} x v_max = "
+                             f"{v_max} m/s: velocities are in m/s, world frame")
+        pos, vel, radius, ids, detected, dropped = self._detections(humans, ids)
+        if self._gst is not None and ids is None and len(pos):
+            raise ValueError("the gst predictor follows each human over 5 frames: give every detection an id "
+                             "(Detection(..., id=track_id) or act(..., ids=[...]))")
+        f32 = np.float32
+        robot_pos = rs[0:2].astype(f32)
+        rel = pos.astype(f32) - robot_pos
+        dist = np.sqrt(np.square(rel[:, 0]) + np.square(rel[:, 1]))
+        edge = dist - f32(env.robot_radius) - radius.astype(f32)
+        in_range = np.flatnonzero(edge <= f32(env.sensor_range))
+        order = in_range[np.argsort(dist[in_range], kind="stable")]
+        used = order[:self.capacity]
+
+        feats = [rel[used]]
+        if self._k:
+            if self._gst is not None:
+                pred = self._gst.predictions(robot_pos, pos.astype(f32)[used], [ids[i] for i in used])
+            else:
+                pred = pos.astype(f32)[used, None, :] + self._steps * vel.astype(f32)[used, None, :]
+            feats.append((pred.astype(f32) - robot_pos).reshape(len(used), 2 * self._k))
+        elif self._gst is not None:
+            self._gst.predictions(robot_pos, pos.astype(f32)[used], [ids[i] for i in used])
+        rows = np.zeros((self.capacity, self._step_info.obs_human_dim), f32)
+        rows[:len(used)] = np.concatenate(feats, axis=1)
+        mask = np.zeros(self.capacity, f32)
+        mask[:len(used)] = 1.0
+        heading = f32(rs[2]) if self.kinematics == "unicycle" else HOLONOMIC_HEADING
+        robot_node = np.array([robot_pos[0], robot_pos[1], env.robot_radius, goal[0], goal[1], v_max, heading], f32)
+        robot_vel = rs[3:5].astype(f32)
+        return (robot_node, robot_vel, rows, mask), (detected, dropped, len(in_range), len(used))
+
+    # ------------------------------------------------------------------------------------------ decision
+
+    def act(self, robot_state, goal, humans=None, lidar=None, *, ids=None) -> Decision:
+        """One decision. robot_state: RobotState, {'pose': (x, y, heading), 'velocity': (vx, vy)} or
+        (x, y, heading, vx, vy), world frame, m / rad / m/s. goal: (gx, gy) m. humans: Detections, mappings with
+        'position', 'velocity' and optional 'radius' / 'id', or an (M, 4|5) array [x, y, vx, vy(, radius)];
+        detections with a non-finite number are dropped and counted. ids: track ids (gst needs them).
+        lidar: the shipped policies read no scan (detections are their only view of the crowd), so only None
+        is accepted."""
+        if lidar is not None:
+            raise ValueError("lidar: this policy has no scan input; turn the scan into human detections (positions "
+                             "and velocities) and pass those as `humans`")
+        obs, (detected, dropped, in_range, used) = self.observation(robot_state, goal, humans, ids=ids)
+        action, self.state = self._run(*obs, self.state)
+        action = np.asarray(action, np.float32)
+        if dropped:
+            self.dropped_total += dropped
+            log.warning("dropped %d of %d detections with a non-finite position, velocity or radius (%d so far)",
+                        dropped, detected, self.dropped_total)
+        rs = _robot_state(robot_state)
+        return Decision(self._command(action, rs), action, detected, dropped, in_range, used)
+
+    def _command(self, action: np.ndarray, rs: np.ndarray) -> np.ndarray:
+        env = self.env_config
+        a = np.nan_to_num(action.astype(np.float64), nan=0.0, posinf=1e30, neginf=-1e30)
+        if self.kinematics == "holonomic":
+            speed = math.hypot(a[0], a[1])
+            return (a * min(1.0, env.robot_v_max / max(speed, 1e-12))).astype(np.float32)
+        dv = np.clip(a[0], env.unicycle_dv_min, env.unicycle_dv_max)
+        dtheta = np.clip(a[1], -env.unicycle_dtheta_max, env.unicycle_dtheta_max)
+        forward = rs[3] * math.cos(rs[2]) + rs[4] * math.sin(rs[2])
+        v = np.clip(forward + dv, -env.robot_v_max, env.robot_v_max)
+        return np.array([v, dtheta / env.dt], np.float32)

@@ -1,0 +1,131 @@
+"""One policy decision as a plain function of flat arrays, and where its parameters come from.
+
+The env's observation is a pytree and the network's recurrent state a dict whose layout depends on the network;
+neither travels well to another runtime. `PolicyStep` fixes one flat, unbatched signature
+
+    (robot_node (7,), robot_vel (2,), humans (N, D), human_mask (N,), state (S,)) -> (action (2,), new_state (S,))
+
+all float32, world frame (the network's own frame change happens inside), the action being the Gaussian's mean
+(the deterministic policy `tgrf-eval` scores). The exported ONNX file and StableHLO artifact are this function.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+
+import numpy as np
+
+from tgrf_jax.config import ConfigError, TrainConfig
+
+INTERFACE_FILE = "interface.json"
+ONNX_FILE = "policy.onnx"
+STABLEHLO_FILE = "policy.stablehlo"
+INPUT_NAMES = ("robot_node", "robot_vel", "humans", "human_mask", "state")
+OUTPUT_NAMES = ("action", "new_state")
+
+
+@dataclasses.dataclass
+class PolicySource:
+    """A trained policy: its TrainConfig, network parameters and a description of where it came from."""
+
+    config: TrainConfig
+    params: dict
+    origin: dict
+    exported_dir: pathlib.Path | None = None  # set when loaded from a tgrf-export directory
+
+
+def is_exported(path) -> bool:
+    path = pathlib.Path(path)
+    return (path / INTERFACE_FILE).is_file()
+
+
+def load_source(source: str | pathlib.Path, *, step: int | None = None) -> PolicySource:
+    """A policy from a tgrf-train run directory (latest checkpoint unless `step`), a tgrf-export directory, or a
+    pretrained name / directory. Raises ConfigError or CheckpointError naming the path and what is wrong."""
+    from tgrf_jax import pretrained
+
+    path = pathlib.Path(source)
+    if path.is_dir() and (path / "checkpoints").exists():
+        import jax
+
+        from tgrf_jax.train.run_dir import restore_run
+
+        config, state = restore_run(path, step)
+        params = jax.device_get(state.params)
+        return PolicySource(config, params, {"run_dir": str(path), "update": int(state.update)})
+    if step is not None:
+        raise ConfigError(f"step selects a checkpoint of a run directory; {str(source)!r} is not one "
+                          "(no checkpoints/ in it)")
+    if path.is_dir() and not (path / "params.npz").exists() and (path / "config.yaml").exists():
+        raise ConfigError(f"{str(path)!r} looks like a tgrf-train run directory without checkpoints/: nothing "
+                          "trained to load")
+    config, params, meta = pretrained.load(str(source))
+    exported = pretrained.resolve(str(source))
+    origin = {"pretrained": str(source), **{k: meta[k] for k in ("experiment", "row", "seed", "update")
+                                             if k in meta}}
+    return PolicySource(config, params, origin, exported if is_exported(exported) else None)
+
+
+class PolicyStep:
+    """The single-decision function of a trained network (see the module docstring) and its sizes."""
+
+    def __init__(self, config: TrainConfig, params):
+        import jax
+
+        from tgrf_jax.policies import make_network_for
+
+        self.config = config
+        self.net = make_network_for(config)
+        self.params = params
+        self.num_humans = config.env.num_humans
+        self.obs_human_dim = config.env.obs_human_dim
+        carry = self.net.initialize_carry(1)
+        self._leaves, self._treedef = jax.tree_util.tree_flatten(carry)
+        self._sizes = [int(np.prod(leaf.shape[1:])) for leaf in self._leaves]
+        self.state_size = sum(self._sizes)
+
+    def input_shapes(self) -> list[tuple[int, ...]]:
+        return [(7,), (2,), (self.num_humans, self.obs_human_dim), (self.num_humans,), (self.state_size,)]
+
+    def zeros(self) -> list[np.ndarray]:
+        return [np.zeros(s, np.float32) for s in self.input_shapes()]
+
+    def state_from_carry(self, carry) -> np.ndarray:
+        """The flat state of row 0 of a batched carry (the env-side recurrent state, for tests and replay)."""
+        import jax
+
+        return np.concatenate([np.asarray(leaf)[0].reshape(-1) for leaf in jax.tree_util.tree_leaves(carry)])
+
+    def __call__(self, robot_node, robot_vel, humans, human_mask, state):
+        import jax
+        import jax.numpy as jnp
+
+        from tgrf_jax.env.types import Obs
+
+        cuts = np.cumsum(self._sizes)[:-1].tolist()
+        parts = jnp.split(state, cuts) if cuts else [state]
+        carry = jax.tree_util.tree_unflatten(
+            self._treedef, [p.reshape((1,) + leaf.shape[1:]) for p, leaf in zip(parts, self._leaves)])
+        n = self.num_humans
+        # A float mask keeps every input one dtype for runtimes fed from other languages; 0.5 splits 0 from 1.
+        obs = Obs(robot_node=robot_node[None], robot_vel=robot_vel[None], humans=humans[None],
+                  human_mask=(human_mask > 0.5)[None], human_vel=jnp.zeros((1, n, 2), jnp.float32),
+                  human_radius=jnp.zeros((1, n), jnp.float32))
+        carry, pi, _ = self.net.apply(self.params, carry, obs, None)
+        new_state = jnp.concatenate([leaf.reshape(-1) for leaf in jax.tree_util.tree_leaves(carry)])
+        return pi.mean()[0], new_state
+
+    def jitted(self):
+        import jax
+
+        return jax.jit(self.__call__)
+
+
+def read_interface(directory) -> dict:
+    path = pathlib.Path(directory) / INTERFACE_FILE
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"{str(path)!r}: cannot read the interface ({type(e).__name__}: {e})") from None

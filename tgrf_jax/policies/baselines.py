@@ -1,0 +1,93 @@
+"""Robot policies with one interface, so evaluation, rendering and training treat baselines and learned
+policies alike.
+
+A policy has `initialize_carry(batch_size)` and `act(carry, obs, resets, key) -> (carry, action)` on a batch
+of observations (leading axis B). `resets` (B,) marks episode starts, where a recurrent policy zeroes its
+state; the baselines here are memoryless and keep a dummy carry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol
+
+import jax
+import jax.numpy as jnp
+
+from tgrf_jax.env import orca
+from tgrf_jax.env.humans import ORCA_RADIUS_PAD, preferred_velocity
+from tgrf_jax.env.types import Obs
+
+
+class Policy(Protocol):
+    def initialize_carry(self, batch_size: int): ...
+
+    def act(self, carry, obs: Obs, resets, key): ...
+
+
+def _dummy_carry(batch_size: int):
+    return jnp.zeros((batch_size, 1), jnp.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class StraightPolicy:
+    """Drive straight at the goal at full speed, ignoring everyone (the lower bound of every table)."""
+
+    def initialize_carry(self, batch_size: int):
+        return _dummy_carry(batch_size)
+
+    def act(self, carry, obs: Obs, resets, key):
+        return carry, jax.vmap(self.action)(obs)
+
+    @staticmethod
+    def action(obs: Obs):
+        pos, goal, v_max = obs.robot_node[:2], obs.robot_node[3:5], obs.robot_node[5]
+        offset = goal - pos
+        dist = jnp.linalg.norm(offset)
+        return offset / jnp.maximum(dist, 1e-6) * v_max
+
+
+@dataclasses.dataclass(frozen=True)
+class OrcaPolicy:
+    """The robot solves ORCA against the humans it sees (their positions, velocities and radii).
+
+    Settings follow the CrowdNav ORCA robot: 10 m neighbour distance, 5 s horizon, safety space 0.15, the
+    preferred velocity points at the goal with speed v_max. Unseen humans are masked out of the solve.
+    """
+
+    time_horizon: float = 5.0
+    neighbor_dist: float = 10.0
+    safety_space: float = 0.15
+    dt: float = 0.25
+
+    def initialize_carry(self, batch_size: int):
+        return _dummy_carry(batch_size)
+
+    def act(self, carry, obs: Obs, resets, key):
+        return carry, jax.vmap(self.action)(obs)
+
+    def action(self, obs: Obs):
+        n = obs.human_mask.shape[0]
+        robot_pos, radius, goal, v_max = obs.robot_node[:2], obs.robot_node[2], obs.robot_node[3:5], obs.robot_node[5]
+        # Agent 0 is the robot at the origin of its own frame; humans are at their relative positions.
+        pos = jnp.concatenate([jnp.zeros((1, 2)), obs.humans[:, :2]])
+        vel = jnp.concatenate([obs.robot_vel[None], obs.human_vel])
+        radii = jnp.concatenate([radius[None], obs.human_radius]) + ORCA_RADIUS_PAD + self.safety_space
+        pref = preferred_velocity(robot_pos, goal) * v_max
+        prefs = jnp.concatenate([pref[None], obs.human_vel])
+        max_speeds = jnp.concatenate([v_max[None], jnp.full((n,), v_max)])
+        seen = jnp.concatenate([jnp.ones((1,), bool), obs.human_mask])
+        new_vel = orca.solve(
+            pos, vel, radii, prefs, max_speeds, time_horizon=self.time_horizon, dt=self.dt,
+            neighbor_dist=self.neighbor_dist, max_neighbors=n, neighbor_mask=seen,
+        )
+        return new_vel[0]
+
+
+BASELINES = {"straight": StraightPolicy, "orca": OrcaPolicy}
+
+
+def baseline(name: str) -> Policy:
+    if name not in BASELINES:
+        raise ValueError(f"unknown baseline policy {name!r}; valid: {', '.join(BASELINES)}")
+    return BASELINES[name]()
