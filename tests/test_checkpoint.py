@@ -130,3 +130,45 @@ def test_a_run_without_humans_checkpoints_and_resumes(tmp_path):
     assert tree_digest(restored) == tree_digest(first.state)
     again = train_run(config, tmp_path / "run", resume=True, log=lambda m: None, stop_after_updates=0)
     assert again.updates == 0 and tree_digest(again.state) == tree_digest(first.state)
+
+
+
+def test_closed_event_loop_callbacks_of_a_failed_restore_are_muted_and_nothing_else():
+    """A failed restore leaves tensorstore reads in flight that complete into orbax's closed event loop; Python
+    reports each as an unraisable exception (hundreds of tracebacks after a one-line error). The process-wide hook
+    of tgrf_jax.storage.checkpoint drops exactly those and passes any other unraisable exception on. (pytest swaps
+    its own hook in around each test, so the wrapper is checked directly; test_bad_inputs runs the processes.)"""
+    import asyncio
+    import sys
+    import types
+
+    from tgrf_jax.storage import checkpoint
+
+    loop = asyncio.new_event_loop()
+    loop.close()
+    try:
+        loop.call_soon_threadsafe(print)
+    except RuntimeError as e:
+        closed = e
+    try:
+        raise RuntimeError("Event loop is closed")  # the same words from elsewhere: not orbax's noise
+    except RuntimeError as e:
+        other = e
+
+    def unraisable(exc):
+        return types.SimpleNamespace(exc_type=type(exc), exc_value=exc, exc_traceback=exc.__traceback__,
+                                     err_msg=None, object=None)
+
+    passed_on = []
+    hook = checkpoint._muting(passed_on.append)
+    for exc in (closed, other, ValueError("x")):
+        hook(unraisable(exc))
+    assert [u.exc_value for u in passed_on] == [other, passed_on[1].exc_value] and len(passed_on) == 2
+    assert isinstance(passed_on[1].exc_value, ValueError)
+    # installed once at import, outside any test's swap
+    import subprocess
+
+    code = "import sys, tgrf_jax.storage.checkpoint; print(sys.unraisablehook._tgrf_mutes_closed_loop)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False,
+                         env={**__import__("os").environ, "JAX_PLATFORMS": "cpu"}, timeout=120)
+    assert out.stdout.strip() == "True", out.stderr[-2000:]

@@ -35,7 +35,9 @@ GRID = ["--grid", "reward.h_disc=1.0,2.5"]
 
 # Runs a tool's main with a SIGKILL of its own process at one point: "first-save" (the initial checkpoint, before
 # anything is on disk), "commit:N" (orbax has written checkpoint N into its temporary directory and is about to
-# rename it into place) or "final-evaluation".
+# rename it into place), "final-evaluation", "before-provenance" (tgrf-reproduce: a row's sweep has written its
+# evals.csv and exited, and the parent is about to record that in provenance.json) or "update:N" (tgrf-predictor:
+# the chunk of updates that reaches update N has trained, before it is logged or checkpointed).
 KILLER = r"""
 import os, signal, sys
 tool, when, argv = sys.argv[1], sys.argv[2], sys.argv[3:]
@@ -58,8 +60,28 @@ elif when == "final-evaluation":
     from tgrf_jax.sweep.program import SweepBatch
     from tgrf_jax.train.run_dir import SoloProgram
     SoloProgram.evaluate = SweepBatch.evaluate = die
-from tgrf_jax.cli import sweep_main, train_main
-sys.exit({"train": train_main, "sweep": sweep_main}[tool](argv))
+elif when == "before-provenance":
+    from tgrf_jax.experiments import runner
+    write = runner.write_atomic
+    def record(path, text, *args, **kwargs):
+        path = os.fspath(path)
+        if os.path.basename(path) == "provenance.json" and os.path.isfile(os.path.join(os.path.dirname(path),
+                                                                                        "evals.csv")):
+            die()
+        return write(path, text, *args, **kwargs)
+    runner.write_atomic = record
+elif when.startswith("update:"):
+    from tgrf_jax.predictor import train as predictor_train
+    chunk, stop = predictor_train.train_chunk, int(when.split(":")[1])
+    def train_chunk(*args, **kwargs):
+        state, loss = chunk(*args, **kwargs)
+        if int(state.step) >= stop:
+            die()
+        return state, loss
+    predictor_train.train_chunk = train_chunk
+from tgrf_jax.cli import predictor_main, reproduce_main, sweep_main, train_main
+sys.exit({"train": train_main, "sweep": sweep_main, "reproduce": reproduce_main,
+          "predictor": predictor_main}[tool](argv))
 """
 
 
@@ -181,3 +203,88 @@ def test_sweep_killed_at_every_stage_ends_as_an_uninterrupted_sweep(env, tmp_pat
     assert steps(export) == [12] and state_digest(sweep / "runs" / names[0]) == state_digest(
         reference / "runs" / names[0])
     assert {p: p.stat().st_mtime_ns for p in kept} == kept  # an intact export is left alone
+
+
+@pytest.mark.slow
+def test_reproduce_killed_between_a_row_s_results_and_its_provenance_reruns_the_row(env, tmp_path):
+    # The sweep child has finished (evals.csv whole) when its parent dies before recording the invocation's exit
+    # code: the row must not count as done without its provenance, and a rerun at once completes it.
+    import yaml
+
+    from tgrf_jax.experiments import runner
+
+    exp = tmp_path / "exp.yaml"
+    exp.write_text(yaml.safe_dump({
+        "title": "kill", "layout": "table", "config": TINY, "seeds": 1, "grid": {"reward.scheme": ["tgrf"]},
+        "set": {"ppo.total_steps": 256, "ppo.num_shards": 1, "ppo.update_epochs": 1, "ppo.num_minibatches": 1,
+                "run.eval_episodes": 4},
+        "rows": [{"name": "mlp", "label": "MLP"}]}))
+    out, row = tmp_path / "out", tmp_path / "out" / "mlp"
+    argv = [str(exp), "--out", str(out)]
+
+    tool(env, "reproduce", argv, kill_at="before-provenance")
+    results = (row / "evals.csv").read_text()
+    prov = json.loads((row / "provenance.json").read_text())
+    assert [i["exit_code"] for i in prov["invocations"]] == [None]  # recorded as started, never as finished
+    assert runner.row_state(row) == "damaged"
+    assert "Rows finished: 0/1" in (out / "report.md").read_text()  # the report written before the row
+
+    rerun = tool(env, "reproduce", argv)
+    assert "provenance.json does not record the invocation that finished it" in rerun.stdout
+    assert "trained to the end already" in rerun.stdout and "compiled a" not in rerun.stdout  # nothing retrained
+    assert (row / "evals.csv").read_text() == results
+    prov = json.loads((row / "provenance.json").read_text())
+    assert [i["exit_code"] for i in prov["invocations"]] == [None, 0]
+    assert runner.row_state(row) == "done" and "Rows finished: 1/1" in (out / "report.md").read_text()
+    with open(out / "report.csv", newline="") as f:
+        assert [r["seeds"] for r in csv.DictReader(f)] == ["1"]
+
+
+def _predictor_dataset(path: pathlib.Path) -> pathlib.Path:
+    """Straight-line walkers, all seen all the time: the smallest dataset tgrf-predictor trains on."""
+    import numpy as np
+
+    from tgrf_jax.predictor import data as data_lib
+
+    rng = np.random.default_rng(0)
+    b, t, n = 5, 40, 3
+    times = np.arange(t, dtype=np.float32)[None, :, None, None] * 0.25
+    human = rng.uniform(-3, 3, (b, 1, n, 2)) + rng.uniform(-1, 1, (b, 1, n, 2)) * times
+    arrays = {"robot_pos": np.zeros((b, t, 2), np.float32), "human_pos": human.astype(np.float32),
+              "visible": np.ones((b, t, n), bool), "seg": np.zeros((b, t, n), np.int16)}
+    return data_lib.save_dataset(path, {"arrays": arrays, "config": {"crowd": "orca", "seed": 0}})
+
+
+@pytest.mark.slow
+def test_predictor_training_killed_mid_save_and_mid_training_ends_as_an_uninterrupted_one(env, tmp_path):
+    import numpy as np
+
+    dataset = _predictor_dataset(tmp_path / "d.npz")
+    # dropout: its keys are part of the state that must resume; checkpoints every 4 updates, logs every 2
+    opts = ["--dataset", str(dataset), "--updates", "8", "--batch-size", "4", "--log-every", "2",
+            "--checkpoint-every", "4", "--decay-every", "2", "--eval-windows", "8", "--dropout", "0.1"]
+    reference, run = tmp_path / "reference", tmp_path / "run"
+    tool(env, "predictor", ["train", *opts, "--run-dir", str(reference)])
+    ckpts = run / "checkpoints"
+
+    tool(env, "predictor", ["train", *opts, "--run-dir", str(run)], kill_at="commit:4")
+    assert steps(ckpts) == [] and leftovers(ckpts)  # the half-committed step is not a step
+    tool(env, "predictor", ["train", *opts, "--run-dir", str(run)], kill_at="update:6")  # from scratch, dies at 6
+    assert steps(ckpts) == [4] and not leftovers(ckpts)
+    out = tool(env, "predictor", ["train", *opts, "--run-dir", str(run)])
+    assert f"resumed from {ckpts} at update 4" in out.stdout
+    assert steps(ckpts) == [4, 8]
+
+    with np.load(reference / "gst.npz") as a, np.load(run / "gst.npz") as b:
+        names = [k for k in a.files if k != "meta"]
+        assert names and sorted(names) == sorted(k for k in b.files if k != "meta")
+        for k in names:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)  # bit-identical weights
+    for step in (4, 8):
+        from tgrf_jax.predictor import train as predictor_train
+        from tgrf_jax.storage.checkpoint import Checkpointer
+
+        template = predictor_train.init_state(predictor_train.TrainConfig(dropout=0.1))
+        digests = [tree_digest(Checkpointer(d / "checkpoints", create=False).restore(template, step))
+                   for d in (reference, run)]
+        assert digests[0] == digests[1], step

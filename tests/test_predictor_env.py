@@ -165,3 +165,19 @@ def test_jit_vmap_and_weights_swap_without_recompiling():
     visible = np.asarray(batched[0].human_mask)
     assert visible.any()
     assert not np.allclose(np.asarray(swapped[0].humans)[visible], np.asarray(batched[0].humans)[visible])
+
+
+@pytest.mark.parametrize("fn, positions, visible, message", [
+    ("predict", (3, 5, 2, 1), (3, 5), r"gst.predict: positions has shape \(3, 5, 2, 1\); expected \(humans, 5, 2\)"),
+    ("predict", (4, 3, 5, 2), (4, 3, 5), r"positions has shape \(4, 3, 5, 2\); expected \(humans, 5, 2\).*vmap"),
+    ("predict", (3, 5), (3, 5), r"positions has shape \(3, 5\); expected \(humans, 5, 2\)"),
+    ("predict", (3, 4, 2), (3, 4), r"positions has shape \(3, 4, 2\); expected \(humans, 5, 2\)"),
+    ("predict", (3, 5, 2), (3, 4), r"gst.predict: visible has shape \(3, 4\); expected \(3, 5\)"),
+    ("step_gaussians", (3, 5, 2, 1), (3, 5), (r"gst.step_gaussians: positions has shape \(3, 5, 2, 1\); "
+                                              r"expected \(humans, T, 2\)")),
+])
+def test_arrays_of_the_wrong_shape_are_named_with_the_shape_expected(fn, positions, visible, message):
+    # what a user passes by hand: a batch of envs without vmap, a missing (x, y) axis, too few frames
+    params = predictor.init_params(jax.random.key(0), num_humans=3)
+    with pytest.raises(ValueError, match=message):
+        getattr(predictor, fn)(params, np.zeros(positions, np.float32), np.ones(visible, bool))

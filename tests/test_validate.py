@@ -40,6 +40,20 @@ def test_hand_built_env_params_name_the_field_and_the_allowed_range(params, chan
         bad.validate()
 
 
+@pytest.mark.parametrize("value, kind", [
+    ("0.1", "str"), (None, "NoneType"), (True, "bool"), (1 + 2j, "complex"), ([0.1, [0.2]], "list"),
+    (["0.1", "0.2"], "array of <U3"), ("9" * 5000, "str"),
+])
+def test_a_leaf_that_is_no_number_is_named_with_what_is_allowed(params, value, kind):
+    # replace() takes anything: numpy's comparisons would fail on a string without naming the field, and a bool
+    # would pass as 0 or 1
+    with pytest.raises(ConfigError) as e:
+        params.replace(dt=value).validate()
+    message = str(e.value)
+    assert message.startswith("env.dt = ") and f"({kind}) must be a number, or an array of numbers" in message
+    assert len(message) < 200  # a huge value is cut short, not echoed
+
+
 def test_reward_params_and_valid_params(params):
     with pytest.raises(ConfigError, match=r"reward.sigma_disc = -0.2 is out of range; allowed: > 0.0"):
         params.replace(reward=params.reward.replace(sigma_disc=jnp.float32(-0.2))).validate()

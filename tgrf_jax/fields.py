@@ -165,12 +165,23 @@ def check_fields(obj, prefix: str) -> None:
 
 
 def concrete(value, name: str) -> np.ndarray:
-    """A parameter leaf as a host array; a traced one (inside jit / vmap) cannot be checked."""
+    """A parameter leaf as a host array of real numbers; a traced one (inside jit / vmap) cannot be checked.
+
+    Params are built by hand too (`EnvParams.replace(dt="0.1")`): a string, None, a bool or a ragged list would
+    otherwise fail deep inside numpy's comparisons with a message naming no field, or (a bool) pass as 0 / 1."""
     import jax
 
     if isinstance(value, jax.core.Tracer):
         raise TypeError(f"{name} is traced: parameters are checked on concrete values, outside jit / vmap")
-    return np.asarray(value)
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):  # a ragged nested list, an object numpy cannot read
+        a = None
+    if a is None or a.dtype.kind not in "fiu":
+        kind = type(value).__name__ if a is None or a.dtype == object or not a.shape else f"array of {a.dtype}"
+        raise ConfigError(f"{name} = {_show(value)} ({kind}) must be a number, or an array of numbers for a batch "
+                          "of params")
+    return a
 
 
 def first_where(bad, *values) -> list | None:
@@ -258,6 +269,21 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+def yaml_reason(e: yaml.YAMLError) -> str:
+    """A YAML error as one line: PyYAML's message spans several, with the offending text and a caret."""
+    problem = getattr(e, "problem", None)
+    if problem is None:
+        return " ".join(str(e).split())[:200]
+    mark = getattr(e, "problem_mark", None)
+    where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+    return f"{_show_text(problem)}{where}"
+
+
+def _show_text(text: str, limit: int = 200) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def load_yaml(path) -> dict:
     path = pathlib.Path(path)
     if path.is_dir():
@@ -269,7 +295,7 @@ def load_yaml(path) -> dict:
     except UnicodeDecodeError as e:
         raise ConfigError(f"config file {str(path)!r} is not UTF-8 text ({e.reason} at byte {e.start})") from None
     except yaml.YAMLError as e:
-        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {e}") from None
+        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {yaml_reason(e)}") from None
     except RecursionError:
         raise ConfigError(f"config file {str(path)!r} is nested too deeply to be a config") from None
     if data is None:

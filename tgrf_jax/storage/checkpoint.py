@@ -24,6 +24,8 @@ import contextlib
 import hashlib
 import logging
 import pathlib
+import sys
+import traceback
 
 import jax
 import numpy as np
@@ -76,6 +78,52 @@ def _shape(x) -> tuple:
 def _stored_shape(x) -> tuple:
     """The shape `x` (an array or `jax.ShapeDtypeStruct`) is stored in: zero-size arrays as one element."""
     return (1,) if 0 in _shape(x) else _shape(x)
+
+
+def _is_closed_loop_callback(unraisable) -> bool:
+    """An asyncio "Event loop is closed" raised in `call_soon_threadsafe` by a callback with no Python caller.
+
+    When one read of a restore fails (a truncated or missing data file), orbax's restore raises and closes the
+    event loop it ran on while tensorstore still has the step's other reads in flight. As each of them completes,
+    tensorstore's own thread hands the result to that closed loop, and Python prints the RuntimeError it raises
+    as an unraisable exception: hundreds of tracebacks around the one-line error, for as long as reads complete
+    (also after `main` returns). Nothing is lost by dropping them: the restore already failed and says why."""
+    exc = unraisable.exc_value
+    if not (isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"):
+        return False
+    frames = traceback.extract_tb(unraisable.exc_traceback) if unraisable.exc_traceback else []
+    return any(f.name == "call_soon_threadsafe" and f.filename.endswith(("asyncio/base_events.py",
+                                                                           "asyncio\\base_events.py"))
+               for f in frames)
+
+
+def _mute_closed_loop_callbacks() -> None:
+    """Install (once per process) an unraisable-exception hook that drops `_is_closed_loop_callback` noise and
+    passes everything else on to the hook installed before it. Process-wide, because the noise arrives from
+    tensorstore threads at any time after a failed restore, not only inside `_quiet_orbax`."""
+    if not getattr(sys.unraisablehook, "_tgrf_mutes_closed_loop", False):
+        sys.unraisablehook = _muting(sys.unraisablehook)
+
+
+def _muting(previous):
+    """`previous`, an unraisable-exception hook, without the `_is_closed_loop_callback` noise."""
+    def hook(unraisable):
+        if not _is_closed_loop_callback(unraisable):
+            previous(unraisable)
+
+    hook._tgrf_mutes_closed_loop = True
+    return hook
+
+
+_mute_closed_loop_callbacks()
+
+
+def _reason(e: Exception, limit: int = 300) -> str:
+    """An orbax / tensorstore error as one short clause: tensorstore appends the whole spec of the store it read
+    (kilobytes of JSON naming every option), which says nothing about what is damaged."""
+    text = " ".join(str(e).split(" [tensorstore_spec=")[0].split())
+    text = text if len(text) <= limit else text[:limit] + "..."
+    return f"{type(e).__name__}: {text}"
 
 
 @contextlib.contextmanager
@@ -199,7 +247,7 @@ class Checkpointer:
             try:
                 out = self._manager.restore(step, args=ocp.args.Composite(**items))
             except Exception as e:  # orbax / tensorstore raise many types for damaged files
-                raise _Damaged(f"it cannot be read ({type(e).__name__}: {e})") from None
+                raise _Damaged(f"it cannot be read ({_reason(e)})") from None
         state = jax.tree_util.tree_map(
             lambda x, t: np.zeros(_shape(t), np.asarray(x).dtype) if 0 in _shape(t) else x, out[STATE_ITEM], template)
         digest = out[DIGEST_ITEM]

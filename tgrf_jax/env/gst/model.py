@@ -24,7 +24,6 @@ constant velocity. With `cv_prior` = 0 the model is exactly the released one.
 
 from __future__ import annotations
 
-import chex
 import jax
 import jax.numpy as jnp
 from flax import linen as nn
@@ -171,11 +170,26 @@ def init_params(key, num_humans: int = 20, cv_prior: bool = False):
     return params
 
 
+def _check_inputs(fn: str, positions, visible, frames: int | None) -> None:
+    """Shapes of the public entry points' arrays, named by argument. Users pass these arrays by hand (a batch of
+    environments where one is expected, a missing (x, y) axis); chex's messages name neither the argument nor
+    what it means, and flax would fail later still on a shape deep inside the network. Shapes are static, so
+    this also holds under jit and vmap (where they are the shapes of one element)."""
+    shape, vis = tuple(jnp.shape(positions)), tuple(jnp.shape(visible))
+    t = "T" if frames is None else str(frames)
+    if len(shape) != 3 or shape[-1] != 2 or (frames is not None and shape[1] != frames):
+        raise ValueError(f"gst.{fn}: positions has shape {shape}; expected (humans, {t}, 2): each human's last "
+                         f"{'observed' if frames is None else frames} positions (x, y), frame -1 = now (vmap over "
+                         "environments for a batch)")
+    if vis != shape[:2]:
+        raise ValueError(f"gst.{fn}: visible has shape {vis}; expected {shape[:2]} (humans, {t}), one flag per "
+                         "human and frame of positions")
+
+
 def step_gaussians(params, positions, visible, *, dropout_key=None, dropout: float = DROPOUT,
                    detach_spreads: bool = False) -> StepGaussians:
     """Per-step Gaussians; dropout (rate `dropout`) is on only when `dropout_key` is given."""
-    chex.assert_rank(positions, 3)
-    chex.assert_shape(visible, positions.shape[:2])
+    _check_inputs("step_gaussians", positions, visible, frames=None)
     rngs = None if dropout_key is None else {"dropout": dropout_key}
     model = GST(dropout=dropout, detach_spreads=detach_spreads)
     return model.apply({"params": params}, positions, visible, dropout_key is None, rngs=rngs)
@@ -201,5 +215,5 @@ def predict(params, positions, visible) -> Prediction:
     """
     positions = jnp.asarray(positions, jnp.float32)
     visible = jnp.asarray(visible, bool)
-    chex.assert_shape(positions, (None, OBS_LEN, 2))
+    _check_inputs("predict", positions, visible, frames=OBS_LEN)
     return accumulate(step_gaussians(params, positions, visible), positions[:, -1])
