@@ -59,9 +59,11 @@ def hand_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None
     humans = Humans(
         pos=human_pos, vel=human_vel, goal=human_goal,
         radius=jnp.full((n,), radius, jnp.float32), v_pref=jnp.full((n,), v_pref, jnp.float32),
+        active=jnp.ones((n,), bool),
     )
     return EnvState(robot=robot, humans=humans, goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
-                    step_count=jnp.zeros((), jnp.int32), orca_neighbor_dist=jnp.float32(neighbor_dist))
+                    step_count=jnp.zeros((), jnp.int32), orca_neighbor_dist=jnp.float32(neighbor_dist),
+                    scenario=jnp.zeros((), jnp.int32))
 
 
 def rollout(env, key, params, n_steps, policy_fn):

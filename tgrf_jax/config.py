@@ -106,6 +106,10 @@ def _resolved_reward_class():
 
 _ResolvedReward = _resolved_reward_class()
 
+# The concrete scenarios (tgrf_jax.env.scenario, docs/scenarios.md), in the order of env.scenario_weights.
+SCENARIOS = ("circle_crossing", "square_crossing", "parallel_traffic", "perpendicular_traffic", "frontal_approach",
+             "robot_overtaking", "robot_crowding", "random")
+
 # Allowed human counts: the reference scenario uses 20; spawning on a 6*sqrt(2) m circle cannot seat many more
 # without overlaps.
 MAX_HUMANS = 200
@@ -132,7 +136,10 @@ class EnvConfig:
     """
 
     # --- static: shapes and code paths -------------------------------------------------------------
-    num_humans: int = spec(20, low=0, high=MAX_HUMANS)
+    num_humans: int = spec(20, low=0, high=MAX_HUMANS, doc="human slots (the capacity; see active_humans_*)")
+    scenario: str = spec("circle_crossing", choices=SCENARIOS + ("mix",),
+                         doc="how starts, goals, goal changes and respawns are drawn (docs/scenarios.md); mix: a "
+                             "scenario drawn per episode by env.scenario_weights")
     human_policy: str = spec("orca", choices=("orca", "social_force"))
     predictor: str = spec("const_vel", choices=("none", "const_vel", "truth", "gst"))
     predictor_params: str = spec("auto", choices=("auto", "orca", "social_force"),
@@ -148,6 +155,14 @@ class EnvConfig:
     orca_max_neighbors: int = spec(-1, low=-1, high=MAX_HUMANS, doc="-1: all other humans")
 
     # --- numeric (traced) --------------------------------------------------------------------------
+    active_humans_min: float | None = traced(
+        None, low=0, high=MAX_HUMANS,
+        doc="fewest humans present in an episode: the count is drawn per episode ~ U{min..max} out of the "
+            "env.num_humans slots (None: env.num_humans)")
+    active_humans_max: float | None = traced(None, low=0, high=MAX_HUMANS,
+                                             doc="most humans present in an episode (None: env.num_humans)")
+    scenario_weights: tuple | None = traced(
+        None, doc=f"mix: relative frequency of each scenario, in the order {', '.join(SCENARIOS)} (None: equal)")
     dt: float = traced(0.25, low=MIN_DT, high=1.0, doc="seconds per step")
     time_limit: float = traced(50.0, low=0.0, high=MAX_EPISODE_SECONDS, low_inclusive=False,
                                doc="seconds; reaching it truncates")
@@ -182,8 +197,24 @@ class EnvConfig:
     unicycle_dtheta_max: float = traced(0.06, low=0.0)
 
     def __post_init__(self):
+        for name in ("active_humans_min", "active_humans_max"):
+            value = getattr(self, name)
+            if value is not None:
+                value = _coerce(value, 0, f"env.{name}")  # a count: whole numbers only
+                object.__setattr__(self, name, value)
+        if self.scenario_weights is not None:
+            weights = self.scenario_weights
+            if isinstance(weights, (str, bytes)) or not hasattr(weights, "__iter__"):
+                raise ConfigError(f"env.scenario_weights = {weights!r} must be a list of {len(SCENARIOS)} numbers "
+                                  f"(one per scenario: {', '.join(SCENARIOS)})")
+            object.__setattr__(self, "scenario_weights",
+                               tuple(_coerce(w, 0.0, f"env.scenario_weights[{i}]") for i, w in enumerate(weights)))
         check_fields(self, "env")
-        check_env_relations({n: getattr(self, n) for n in traced_names(EnvConfig)})
+        check_env_relations({n: self.resolved(n) for n in traced_names(EnvConfig)})
+        hi = self.resolved("active_humans_max")
+        if hi > self.num_humans:
+            raise ConfigError(f"env.active_humans_max = {hi} must be <= env.num_humans = {self.num_humans} "
+                              "(the capacity: humans are drawn from its slots)")
         if self.num_humans == 0 and self.predictor != "none":
             raise ConfigError(
                 f"env.predictor = {self.predictor!r} needs humans to predict, but env.num_humans = 0; "
@@ -192,6 +223,15 @@ class EnvConfig:
         if self.predictor == "gst" and self.pred_horizon != 5:
             raise ConfigError(f"env.pred_horizon = {self.pred_horizon} must be 5 with env.predictor = 'gst' "
                               "(the learned model predicts 5 steps)")
+
+    def resolved(self, name: str):
+        """A traced field's value as `EnvParams` carries it (the active-human bounds default to the capacity)."""
+        value = getattr(self, name)
+        if value is None and name in ("active_humans_min", "active_humans_max"):
+            return self.num_humans
+        if value is None and name == "scenario_weights":
+            return (1.0,) * len(SCENARIOS)
+        return value
 
     @property
     def max_neighbors(self) -> int:
@@ -221,7 +261,8 @@ def check_env_relations(values: Mapping[str, Any]) -> None:
     """The constraints between numeric env fields, on a config's values or on concrete `EnvParams` leaves (arrays:
     every element)."""
     for lo, hi in (("human_radius_min", "human_radius_max"), ("human_v_pref_min", "human_v_pref_max"),
-                   ("orca_neighbor_dist_min", "orca_neighbor_dist_max")):
+                   ("orca_neighbor_dist_min", "orca_neighbor_dist_max"),
+                   ("active_humans_min", "active_humans_max")):
         hit = first_where(np.asarray(values[lo]) > np.asarray(values[hi]), values[lo], values[hi])
         if hit:
             raise ConfigError(f"env.{lo} = {hit[0]!s} must be <= env.{hi} = {hit[1]!s}")
@@ -234,6 +275,20 @@ def check_env_relations(values: Mapping[str, Any]) -> None:
     hit = first_where(np.asarray(values["time_limit"]) < np.asarray(values["dt"]), values["time_limit"], values["dt"])
     if hit:
         raise ConfigError(f"env.time_limit = {hit[0]!s} must be >= env.dt = {hit[1]!s}")
+    check_scenario_weights(values["scenario_weights"])
+
+
+def check_scenario_weights(weights) -> None:
+    """One non-negative, finite weight per scenario (the last axis; leading axes: a batch), not all zero."""
+    w = np.asarray(weights, np.float64)
+    allowed = f"allowed: {len(SCENARIOS)} non-negative numbers, not all zero, one per scenario ({', '.join(SCENARIOS)})"
+    if w.ndim == 0 or w.shape[-1] != len(SCENARIOS):
+        raise ConfigError(f"env.scenario_weights has {1 if w.ndim == 0 else w.shape[-1]} value(s); {allowed}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise ConfigError(f"env.scenario_weights = {np.round(w, 6).tolist()} has a negative or non-finite weight; "
+                          f"{allowed}")
+    if np.any(w.sum(-1) <= 0):
+        raise ConfigError(f"env.scenario_weights = {np.round(w, 6).tolist()} are all zero; {allowed}")
 
 
 def check_env_params(params) -> None:
@@ -411,7 +466,10 @@ class TrainConfig:
         return cls.from_dict(apply_overrides(load_yaml(path), overrides or []))
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        data = dataclasses.asdict(self)
+        if data["env"]["scenario_weights"] is not None:  # a list, as YAML writes and reads it
+            data["env"]["scenario_weights"] = list(data["env"]["scenario_weights"])
+        return data
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)

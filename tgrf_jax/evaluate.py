@@ -1,5 +1,7 @@
 """Evaluation, the one place for it: N distinct episodes in parallel, reduced to the paper's metrics (success,
-collision and timeout rates, navigation time, path length, both intrusion ratios; docs/reference.md defines them).
+collision and timeout rates, navigation time, path length, both intrusion ratios; docs/reference.md defines them)
+and the field's wider set (SPL, clearance, personal space, speed, acceleration, jerk, path irregularity,
+time-to-collision, time stalled; docs/metrics.md defines them), all accumulated inside the compiled program.
 
 `run_episodes` is the compiled program (one episode in each of N environments, stepped in lock-step without
 auto-reset until every episode has ended; finished ones are masked out of the statistics). `evaluate` plays a
@@ -39,6 +41,42 @@ class EpisodeStats:
     future_dist_sum: jnp.ndarray
     disc_steps: jnp.ndarray
     disc_dist_sum: jnp.ndarray
+    # docs/metrics.md
+    start_goal_dist: jnp.ndarray  # straight-line distance from the start to the goal (SPL's shortest path)
+    min_dist: jnp.ndarray  # smallest edge-to-edge distance to a human (inf without humans)
+    personal_steps: jnp.ndarray  # steps with a human inside PERSONAL_SPACE
+    speed_sum: jnp.ndarray
+    speed_max: jnp.ndarray
+    accel_sum: jnp.ndarray  # sum over steps of |a|, a = (v_t - v_{t-1}) / dt
+    jerk_sum: jnp.ndarray  # sum over steps of |(a_t - a_{t-1}) / dt|
+    turn_sum: jnp.ndarray  # total change of the direction of motion (rad)
+    min_ttc: jnp.ndarray  # smallest time-to-collision at constant velocities (inf: never on a collision course)
+    stall_steps: jnp.ndarray  # steps slower than STALL_SPEED
+    num_humans: jnp.ndarray  # active humans of the episode
+
+
+# Edge-to-edge distance below which a human is inside the robot's personal space (docs/metrics.md).
+PERSONAL_SPACE = 0.45
+# The robot counts as stalled below this speed (m/s) (docs/metrics.md).
+STALL_SPEED = 0.1
+# Below this speed the direction of motion is undefined and not counted in the turning of path irregularity.
+_MOVING = 1e-3
+
+
+def time_to_collision(robot_pos, robot_vel, robot_radius, human_pos, human_vel, human_radius, active):
+    """Smallest time until the robot's disc touches an active human's at the current velocities, per
+    environment: (B, 2) robot and (B, N, ...) human arrays -> (B,); 0 when touching now, inf when never."""
+    p = human_pos - robot_pos[:, None]
+    v = human_vel - robot_vel[:, None]
+    r = robot_radius + human_radius
+    a = jnp.sum(v * v, -1)
+    b = 2.0 * jnp.sum(p * v, -1)
+    c = jnp.sum(p * p, -1) - r * r
+    disc = b * b - 4.0 * a * c
+    approaching = (b < 0) & (disc >= 0) & (a > 0)
+    t = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.maximum(2.0 * a, 1e-12)
+    ttc = jnp.where(c <= 0, 0.0, jnp.where(approaching, t, jnp.inf))
+    return jnp.min(jnp.where(active, ttc, jnp.inf), axis=-1, initial=jnp.inf)
 
 
 def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params: EnvParams) -> EpisodeStats:
@@ -47,9 +85,16 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, n_episodes), params)
     zeros = jnp.zeros(n_episodes, jnp.float32)
     izeros = jnp.zeros(n_episodes, jnp.int32)
-    stats = EpisodeStats(zeros, zeros, izeros, zeros, zeros, izeros, zeros, izeros, zeros)
+    inf = jnp.full(n_episodes, jnp.inf, jnp.float32)
+    stats = EpisodeStats(
+        zeros, zeros, izeros, zeros, zeros, izeros, zeros, izeros, zeros,
+        start_goal_dist=jnp.linalg.norm(state.robot.goal - state.robot.pos, axis=-1), min_dist=inf,
+        personal_steps=izeros, speed_sum=zeros, speed_max=zeros, accel_sum=zeros, jerk_sum=zeros, turn_sum=zeros,
+        min_ttc=inf, stall_steps=izeros, num_humans=jnp.sum(state.humans.active, -1, dtype=jnp.int32),
+    )
     alive = jnp.ones(n_episodes, bool)
     carry = policy.initialize_carry(n_episodes)
+    motion = (state.robot.vel, jnp.zeros_like(state.robot.vel))  # last velocity and acceleration
 
     def step_one(key, state, action):
         # No auto-reset: an ended episode is masked out, so a fresh one would be computed only to be thrown away.
@@ -59,7 +104,7 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
     step_all = jax.vmap(step_one)
 
     def body(loop):
-        t, key, obs, state, carry, alive, stats = loop
+        t, key, obs, state, carry, alive, stats, motion = loop
         key, k_act, k_step = jax.random.split(key, 3)
         carry, action = policy.act(carry, obs, jnp.equal(t, 0) & alive, k_act)
         obs, state, reward, terminated, truncated, info = step_all(jax.random.split(k_step, n_episodes), state,
@@ -67,6 +112,17 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
         done = terminated | truncated
         fut = info.intrusion_future & alive
         disc = info.intrusion_disc & alive
+        vel = state.robot.vel
+        prev_vel, prev_acc = motion
+        acc = (vel - prev_vel) / params.dt
+        speed = jnp.linalg.norm(vel, axis=-1)
+        prev_speed = jnp.linalg.norm(prev_vel, axis=-1)
+        turning = (speed > _MOVING) & (prev_speed > _MOVING)
+        cos = jnp.sum(vel * prev_vel, -1) / jnp.maximum(speed * prev_speed, 1e-12)
+        turn = jnp.where(turning, jnp.arccos(jnp.clip(cos, -1.0, 1.0)), 0.0)
+        ttc = time_to_collision(state.robot.pos, vel, params.robot_radius, state.humans.pos, state.humans.vel,
+                                state.humans.radius, state.humans.active)
+        add = lambda total, x: total + jnp.where(alive, x, 0)  # noqa: E731
         stats = EpisodeStats(
             outcome=jnp.where(alive & done, info.outcome, stats.outcome),
             time=jnp.where(alive & done, info.time, stats.time),
@@ -78,15 +134,26 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
             future_dist_sum=stats.future_dist_sum + jnp.where(fut, info.future_dist, 0.0),
             disc_steps=stats.disc_steps + disc,
             disc_dist_sum=stats.disc_dist_sum + jnp.where(disc, info.dmin, 0.0),
+            start_goal_dist=stats.start_goal_dist,
+            min_dist=jnp.minimum(stats.min_dist, jnp.where(alive, info.dmin, jnp.inf)),
+            personal_steps=add(stats.personal_steps, (info.dmin < PERSONAL_SPACE).astype(jnp.int32)),
+            speed_sum=add(stats.speed_sum, speed),
+            speed_max=jnp.maximum(stats.speed_max, jnp.where(alive, speed, 0.0)),
+            accel_sum=add(stats.accel_sum, jnp.linalg.norm(acc, axis=-1)),
+            jerk_sum=add(stats.jerk_sum, jnp.linalg.norm(acc - prev_acc, axis=-1) / params.dt),
+            turn_sum=add(stats.turn_sum, turn),
+            min_ttc=jnp.minimum(stats.min_ttc, jnp.where(alive, ttc, jnp.inf)),
+            stall_steps=add(stats.stall_steps, (speed < STALL_SPEED).astype(jnp.int32)),
+            num_humans=stats.num_humans,
         )
-        return t + 1, key, obs, state, carry, alive & ~done, stats
+        return t + 1, key, obs, state, carry, alive & ~done, stats, (vel, acc)
 
     def cond(loop):
         t, alive = loop[0], loop[5]
         return jnp.any(alive) & (t <= params.max_steps)
 
-    loop = (jnp.zeros((), jnp.int32), k_loop, obs, state, carry, alive, stats)
-    return jax.lax.while_loop(cond, body, loop)[-1]
+    loop = (jnp.zeros((), jnp.int32), k_loop, obs, state, carry, alive, stats, motion)
+    return jax.lax.while_loop(cond, body, loop)[-2]
 
 
 _run_episodes_static = jax.jit(run_episodes, static_argnums=(0, 1, 3))  # a hashable policy object
@@ -117,6 +184,19 @@ class EvalResult:
     intrusion_dist_future: float  # mean centre distance during itr_future intrusions
     intrusion_dist_disc: float  # mean nearest edge distance during itr_disc intrusions
     mean_return: float
+    # The field's wider set (docs/metrics.md); NaN where undefined (no episode to average) or not recorded.
+    spl: float = math.nan  # success weighted by (straight-line distance / path length)
+    collision_human_rate: float = math.nan  # episodes ended by hitting a human (the only obstacles so far)
+    min_dist_human: float = math.nan  # mean over episodes of the smallest edge distance to a human (m)
+    personal_space_compliance: float = math.nan  # % of steps with nobody inside PERSONAL_SPACE
+    speed_mean: float = math.nan  # m/s
+    speed_max: float = math.nan  # mean over episodes of the episode's top speed (m/s)
+    accel_mean: float = math.nan  # m/s^2
+    jerk_mean: float = math.nan  # m/s^3
+    path_irregularity: float = math.nan  # turning per metre of path (rad/m)
+    min_ttc: float = math.nan  # mean over episodes (with a collision course) of the smallest time-to-collision (s)
+    time_stalled: float = math.nan  # seconds per episode below STALL_SPEED
+    mean_humans: float = math.nan  # active humans per episode
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in dataclasses.asdict(self).items()}
@@ -138,6 +218,11 @@ def summarize(stats: EpisodeStats) -> EvalResult:
     def ratio(total, count):
         return float(total.sum() / count.sum()) if count.sum() else float("nan")
 
+    def finite_mean(x):
+        return mean(x, np.isfinite(x))
+
+    shortest = s.start_goal_dist
+
     return EvalResult(
         n_episodes=n,
         success_rate=mean(success.astype(float)),
@@ -150,6 +235,18 @@ def summarize(stats: EpisodeStats) -> EvalResult:
         intrusion_dist_future=ratio(s.future_dist_sum, s.future_steps),
         intrusion_dist_disc=ratio(s.disc_dist_sum, s.disc_steps),
         mean_return=mean(s.ret),
+        spl=mean(np.where(success, shortest / np.maximum(np.maximum(s.path_length, shortest), 1e-9), 0.0)),
+        collision_human_rate=mean((s.outcome == COLLISION).astype(float)),
+        min_dist_human=finite_mean(s.min_dist),
+        personal_space_compliance=100.0 * (1.0 - mean(s.personal_steps / steps)),
+        speed_mean=mean(s.speed_sum / steps),
+        speed_max=mean(s.speed_max),
+        accel_mean=mean(s.accel_sum / steps),
+        jerk_mean=mean(s.jerk_sum / steps),
+        path_irregularity=mean(s.turn_sum / np.maximum(s.path_length, 1e-9)),
+        min_ttc=finite_mean(s.min_ttc),
+        time_stalled=mean(s.stall_steps * (s.time / steps)),
+        mean_humans=mean(s.num_humans.astype(float)),
     )
 
 
@@ -201,16 +298,32 @@ METRIC_LABELS = (
     ("intrusion_dist_disc", "dist in ITR disc (m)", "{:.3f}"),
     ("mean_return", "return", "{:.2f}"),
 )
+# The wider set (docs/metrics.md), printed with tgrf-eval --all-metrics.
+EXTRA_METRIC_LABELS = (
+    ("spl", "SPL", "{:.3f}"),
+    ("collision_human_rate", "hit human", "{:.1%}"),
+    ("min_dist_human", "min dist (m)", "{:.3f}"),
+    ("personal_space_compliance", "PS compliance (%)", "{:.1f}"),
+    ("speed_mean", "speed (m/s)", "{:.2f}"),
+    ("speed_max", "max speed (m/s)", "{:.2f}"),
+    ("accel_mean", "accel (m/s^2)", "{:.2f}"),
+    ("jerk_mean", "jerk (m/s^3)", "{:.2f}"),
+    ("path_irregularity", "irregularity (rad/m)", "{:.3f}"),
+    ("min_ttc", "min TTC (s)", "{:.2f}"),
+    ("time_stalled", "stalled (s)", "{:.2f}"),
+    ("mean_humans", "humans", "{:.1f}"),
+)
 
 
-def format_table(results: dict[str, EvalResult]) -> str:
-    """A Markdown table with one row per named result."""
-    header = "| policy | episodes | " + " | ".join(label for _, label, _ in METRIC_LABELS) + " |"
-    rule = "|" + "---|" * (len(METRIC_LABELS) + 2)
+def format_table(results: dict[str, EvalResult], all_metrics: bool = False) -> str:
+    """A Markdown table with one row per named result: the paper's metrics, or with `all_metrics` every one."""
+    labels = METRIC_LABELS + (EXTRA_METRIC_LABELS if all_metrics else ())
+    header = "| policy | episodes | " + " | ".join(label for _, label, _ in labels) + " |"
+    rule = "|" + "---|" * (len(labels) + 2)
     rows = [header, rule]
     for name, r in results.items():
         cells = []
-        for field, _, fmt in METRIC_LABELS:
+        for field, _, fmt in labels:
             v = getattr(r, field)
             cells.append("n/a" if isinstance(v, float) and math.isnan(v) else fmt.format(v))
         rows.append(f"| {name} | {r.n_episodes} | " + " | ".join(cells) + " |")
@@ -240,8 +353,8 @@ def evaluate_state(config: TrainConfig, state, episodes: int, seed: int, baselin
     return evaluate_params(config, state.params, episodes, seed, baselines, net, progress)
 
 
-def format_eval(payload: dict) -> str:
-    """The Markdown table of an eval.json payload."""
+def format_eval(payload: dict, all_metrics: bool = False) -> str:
+    """The Markdown table of an eval.json payload (older payloads lack the wider metrics: shown as n/a)."""
     results = {k: EvalResult(**{f: (float("nan") if v is None else v) for f, v in d.items()})
                for k, d in payload["results"].items()}
-    return format_table(results)
+    return format_table(results, all_metrics)

@@ -66,7 +66,10 @@ def traced_values(config) -> dict:
     """{name: float32 array} of the traced fields of a config instance."""
     import jax.numpy as jnp
 
-    return {n: jnp.asarray(getattr(config, n), jnp.float32) for n in traced_names(type(config))}
+    # A config may leave a traced field at None to mean "follow another field" (env.active_humans_*: the capacity);
+    # its `resolved(name)` gives the number the pytree carries.
+    value = getattr(config, "resolved", None) or (lambda n: getattr(config, n))
+    return {n: jnp.asarray(value(n), jnp.float32) for n in traced_names(type(config))}
 
 
 def describe_allowed(meta: Mapping[str, Any]) -> str:
@@ -149,7 +152,7 @@ def check_fields(obj, prefix: str) -> None:
         value = getattr(obj, f.name)
         name = f"{prefix}.{f.name}" if prefix else f.name
         meta = f.metadata
-        if dataclasses.is_dataclass(value):
+        if dataclasses.is_dataclass(value) or value is None:  # None: resolved from other fields, checked there
             continue
         if meta.get("choices") is not None:
             if value not in meta["choices"]:

@@ -40,6 +40,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to evaluate; default: latest")
     add_pretrained_arg(p)
     p.add_argument("--out", help="write the metrics as JSON to this file")
+    p.add_argument("--suite", metavar="DIR",
+                   help="benchmark: play the policy (RUN_DIR, --pretrained, or the --policy baselines; default orca) "
+                        "on every scenario x 5, 10, 20, 30 humans, --episodes each with the fixed --seed, and write "
+                        "DIR/suite.md, DIR/suite.csv and a thumbnail per scenario (docs/scenarios.md)")
+    p.add_argument("--all-metrics", action="store_true",
+                   help="print every metric (SPL, clearance, personal space, speed, acceleration, jerk, path "
+                        "irregularity, time-to-collision, time stalled; docs/metrics.md), not only the paper's; "
+                        "the JSON always holds all of them")
     return p
 
 
@@ -60,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
 
     start()
     import jax
+
+    if args.suite:
+        return _suite(args, sc)
 
     from tgrf_jax.evaluate import evaluate_params, evaluate_state, format_eval
     from tgrf_jax.storage.checkpoint import CheckpointError
@@ -99,8 +110,41 @@ def main(argv: list[str] | None = None) -> int:
                    for name in args.policy or ["straight", "orca"]}
         payload = {"env": repr(env), "seed": args.seed, "results": {k: v.to_dict() for k, v in results.items()}}
     print(f"  done in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)
-    print(format_eval(payload))
+    print(format_eval(payload, args.all_metrics))
     write_json(args.out, payload)
+    return 0
+
+
+def _suite(args, sc) -> int:
+    from tgrf_jax.cli.suite import run_suite
+    from tgrf_jax.policies import baseline, make_network_for
+    from tgrf_jax.policies.learned import LearnedPolicy
+
+    policies, capacity, config = {}, None, sc.config
+    if sc.params is not None or sc.run_dir is not None:
+        params = sc.params
+        if params is None:
+            from tgrf_jax.storage.checkpoint import CheckpointError
+            from tgrf_jax.train.run_dir import restore_run
+
+            try:
+                check_observation_fits(sc)
+                _, state = restore_run(sc.run_dir, args.step)
+            except CheckpointError as e:
+                return checkpoint_error("tgrf-eval", e, f"tgrf-eval {sc.run_dir} --suite {args.suite} --step")
+            except ConfigError as e:
+                return error("tgrf-eval", e)
+            params = state.params
+        policies["learned"] = LearnedPolicy(make_network_for(config), params)
+        capacity = config.env.num_humans
+    else:
+        from tgrf_jax.config import TrainConfig
+
+        config = TrainConfig(env=sc.env, reward=sc.reward)
+    for name in args.policy or ([] if policies else ["orca"]):
+        policies[name] = baseline(name)
+    run_suite(config, policies, args.suite, episodes=args.episodes, seed=args.seed, capacity=capacity,
+              log=lambda line: print(line, flush=True))
     return 0
 
 

@@ -212,10 +212,16 @@ class CrowdNavEnv:
     def reset_env(self, key, params: EnvParams) -> tuple[Obs, EnvState]:
         k_robot, k_humans = jax.random.split(key)
         tries = self.config.spawn_tries
-        robot = scenario.sample_robot(k_robot, params, tries)
-        humans = scenario.spawn_humans(k_humans, params, robot, self.config.num_humans, tries)
-        # A key of its own (folded, not split) keeps the robot and crowd of an episode what they were before
-        # the neighbour distance became random.
+        sampler = scenario.sampler(self.config.scenario)
+        # Folded keys (not splits) keep the robot and crowd of a full-crowd circle-crossing episode what they were
+        # before the neighbour distance, the crowd size and the scenario became random.
+        if self.config.scenario == "mix":
+            index = scenario.draw_scenario(jax.random.fold_in(key, 3), params.scenario_weights)
+        else:
+            index = jnp.int32(scenario.scenario_index(self.config.scenario))
+        robot = scenario.robot_start(k_robot, params, sampler, index, tries)
+        active = scenario.active_slots(jax.random.fold_in(key, 2), params, self.config.num_humans)
+        humans = scenario.spawn_humans(k_humans, params, robot, self.config.num_humans, tries, active, sampler, index)
         neighbor_dist = scenario.uniform(jax.random.fold_in(key, 1), (), params.orca_neighbor_dist_min,
                                          params.orca_neighbor_dist_max)
         state = EnvState(
@@ -224,6 +230,7 @@ class CrowdNavEnv:
             goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
             step_count=jnp.zeros((), jnp.int32),
             orca_neighbor_dist=neighbor_dist,
+            scenario=index,
         )
         visible = sensing.visible_mask(state, params)
         if self.config.predictor == "gst":
@@ -250,16 +257,20 @@ class CrowdNavEnv:
         # Outcome of the action, judged on the post-step state (collision swept over the step).
         contact = params.robot_radius + humans.radius
         closest = swept_min_distance(humans0.pos - robot0.pos, (human_vel - robot.vel) * params.dt)
-        collided = jnp.any(closest < contact)
-        dmin = jnp.min(sensing.edge_distances(robot.pos, humans.pos, params.robot_radius, humans.radius),
-                       initial=jnp.inf)
+        collided = jnp.any((closest < contact) & humans.active)
+        dmin = jnp.min(jnp.where(humans.active,
+                                 sensing.edge_distances(robot.pos, humans.pos, params.robot_radius, humans.radius),
+                                 jnp.inf), initial=jnp.inf)
         goal_dist = jnp.linalg.norm(robot.pos - robot.goal)
         reached = goal_dist < params.goal_tolerance
 
         step_count = state.step_count + 1
         if cfg.num_humans > 0:
-            humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.goal_tries)
-            humans = scenario.respawn_arrived(k_respawn, humans, robot, params, cfg.spawn_tries)
+            sampler = scenario.sampler(cfg.scenario)
+            humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.goal_tries, sampler,
+                                           state.scenario)
+            humans = scenario.respawn_arrived(k_respawn, humans, robot, params, cfg.spawn_tries, sampler,
+                                              state.scenario)
         next_state = state.replace(robot=robot, humans=humans, step_count=step_count)
 
         visible = sensing.visible_mask(next_state, params)

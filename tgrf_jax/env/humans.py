@@ -32,7 +32,9 @@ def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, con
     if n == 0:
         return jnp.zeros((0, 2))
     pos, vel, goal, radius, v_pref = humans.pos, humans.vel, humans.goal, humans.radius, humans.v_pref
+    present = humans.active
     if robot is not None:
+        present = jnp.concatenate([present, jnp.ones((1,), bool)])
         pos = jnp.concatenate([pos, robot.pos[None]])
         vel = jnp.concatenate([vel, robot.vel[None]])
         goal = jnp.concatenate([goal, robot.goal[None]])
@@ -45,10 +47,12 @@ def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, con
         new_vel = orca.solve(
             pos, vel, radius + ORCA_RADIUS_PAD + params.orca_safety_space, pref, v_pref,
             time_horizon=params.orca_time_horizon, dt=params.dt,
-            neighbor_dist=neighbor_dist, max_neighbors=config.max_neighbors,
+            neighbor_dist=neighbor_dist, max_neighbors=config.max_neighbors, neighbor_mask=present,
         )
     else:
         new_vel = social_force.step(
-            pos, vel, goal, radius, v_pref, a=params.sf_a, b=params.sf_b, ki=params.sf_ki, dt=params.dt
+            pos, vel, goal, radius, v_pref, a=params.sf_a, b=params.sf_b, ki=params.sf_ki, dt=params.dt,
+            neighbor_mask=present,
         )
-    return new_vel[:n]
+    # Inactive slots stay where they are parked.
+    return jnp.where(humans.active[:, None], new_vel[:n], 0.0)

@@ -14,9 +14,9 @@ def edge_distances(robot_pos, human_pos, robot_radius, human_radius):
 
 
 def visible_mask(state: EnvState, params: EnvParams):
-    """Humans within the 360-degree sensor's edge-to-edge range (N,) bool, in human-index order."""
+    """Active humans within the 360-degree sensor's edge-to-edge range (N,) bool, in human-index order."""
     d = edge_distances(state.robot.pos, state.humans.pos, params.robot_radius, state.humans.radius)
-    return d <= params.sensor_range
+    return (d <= params.sensor_range) & state.humans.active
 
 
 def sort_order(keys):

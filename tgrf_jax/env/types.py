@@ -50,13 +50,18 @@ EnvParams = traced_pytree(
 
 @struct.dataclass
 class Humans:
-    """True state of the N humans (world frame)."""
+    """True state of the N human slots (world frame).
+
+    Only the slots where `active` holds are people in the scene; the others are parked far away, stand still
+    and are masked out of every interaction, observation and metric (the active ones fill the first slots).
+    """
 
     pos: jnp.ndarray  # (N, 2)
     vel: jnp.ndarray  # (N, 2) velocity applied during the last step
     goal: jnp.ndarray  # (N, 2)
     radius: jnp.ndarray  # (N,)
     v_pref: jnp.ndarray  # (N,)
+    active: jnp.ndarray  # (N,) bool, fixed for the episode
 
 
 @struct.dataclass
@@ -75,6 +80,7 @@ class EnvState:
     goal_dist_ref: jnp.ndarray  # () goal distance at the last step outside the danger zone (for r_pot)
     step_count: jnp.ndarray  # () int32 steps taken in this episode
     orca_neighbor_dist: jnp.ndarray  # () the humans' ORCA neighbour distance, drawn once per episode
+    scenario: jnp.ndarray  # () int32 index of the episode's scenario in config.SCENARIOS
     history: Any = None  # learned predictor's observed frames (tgrf_jax.env.gst.history), else None
 
 

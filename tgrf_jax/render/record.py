@@ -88,7 +88,7 @@ def _record(env, policy, key, n_episodes: int, params, n_steps: int):
         return dict(
             robot_pos=state.robot.pos, robot_vel=state.robot.vel, goal=state.robot.goal,
             human_pos=state.humans.pos, human_radius=state.humans.radius, visible=visible,
-            obs_humans=obs.humans, obs_mask=obs.human_mask,
+            obs_humans=obs.humans, obs_mask=obs.human_mask, active=state.humans.active,
         )
 
     def step_one(key, state, action):
@@ -170,16 +170,21 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
     episodes = []
     for b in range(int(n_episodes)):
         steps = int(outs["alive"][:, b].sum())
+        # Inactive slots (the last ones, parked far away) are no part of the scene: cut from every human array.
+        # The observation's rows beyond the active count are masked, as nobody inactive is ever visible.
+        count = int(first["active"][b].sum())
         seq = lambda name: np.concatenate([first[name][b][None], outs[name][:steps, b]])  # noqa: E731
+        humans_seq = lambda name: seq(name)[:, :count]  # noqa: E731
         robot_pos = seq("robot_pos")
-        obs_humans = seq("obs_humans")
+        obs_humans = humans_seq("obs_humans")
         n = obs_humans.shape[1]
         obs_pos = obs_humans[:, :, :2] + robot_pos[:, None]
         pred = obs_humans[:, :, 2:].reshape(steps + 1, n, k, 2) + robot_pos[:, None, None] if k else None
         episodes.append(Episode(
             label=label, index=b, robot_pos=robot_pos, robot_vel=seq("robot_vel"), goal=np.asarray(first["goal"][b]),
-            human_pos=seq("human_pos"), human_radius=seq("human_radius"), visible=seq("visible").astype(bool),
-            obs_human_pos=obs_pos, obs_mask=seq("obs_mask").astype(bool), pred_pos=pred,
+            human_pos=humans_seq("human_pos"), human_radius=humans_seq("human_radius"),
+            visible=humans_seq("visible").astype(bool), obs_human_pos=obs_pos,
+            obs_mask=humans_seq("obs_mask").astype(bool), pred_pos=pred,
             reward=np.asarray(outs["reward"][:steps, b], np.float64),
             terms={f.name: np.asarray(getattr(outs["terms"], f.name)[:steps, b], np.float64)
                    for f in dataclasses.fields(outs["terms"])},

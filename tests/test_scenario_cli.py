@@ -1,0 +1,57 @@
+"""Every scenario runs through tgrf-train, tgrf-eval and tgrf-render (a tiny config, a few updates and steps)."""
+
+import json
+import pathlib
+
+import pytest
+
+from tgrf_jax.cli import eval_main, render_main, train_main
+from tgrf_jax.config import SCENARIOS
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = str(ROOT / "configs" / "tiny.yaml")
+# 4 humans out of 6 slots on average, 5-second episodes: short renders, and the variable crowd in every program.
+SHORT = ["--set", "env.num_humans=6", "--set", "env.active_humans_min=2", "--set", "env.active_humans_max=6",
+         "--set", "env.time_limit=5"]
+
+
+def _train_eval_render(name, tmp_path, capsys=None):
+    run = tmp_path / name
+    overrides = ["--set", f"env.scenario={name}", *SHORT]
+    assert train_main([TINY, "--out-dir", str(run), "--set", "ppo.total_steps=256", "--set", "run.eval_episodes=4",
+                       *overrides]) == 0
+    assert f"scenario: {name}" in (run / "config.yaml").read_text()
+    out = tmp_path / "eval.json"
+    assert eval_main([str(run), "--episodes", "4", "--policy", "orca", "--out", str(out), "--all-metrics"]) == 0
+    if capsys is not None:
+        printed = capsys.readouterr().out
+        assert "| SPL |" in printed and "min TTC (s)" in printed
+    results = json.loads(out.read_text())["results"]
+    assert set(results) == {"learned", "orca"} and results["orca"]["n_episodes"] == 4
+    assert render_main([str(run), "--out", str(tmp_path / "render"), "--no-frames", "--no-mp4", "--dpi", "30"]) == 0
+    summary = json.loads((tmp_path / "render" / "summary.json").read_text())
+    assert summary["episodes"][0]["steps"] <= 20
+
+
+def test_mix_runs_in_every_tool(tmp_path, capsys):
+    """mix compiles every scenario's samplers into the trainer, the evaluation and the recorder."""
+    _train_eval_render("mix", tmp_path, capsys)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_every_scenario_runs_in_every_tool(name, tmp_path):
+    _train_eval_render(name, tmp_path)
+
+
+def test_suite_writes_its_table_and_thumbnails(tmp_path, capsys):
+    out = tmp_path / "suite"
+    assert eval_main([TINY, "--suite", str(out), "--episodes", "2", "--policy", "straight", "--set",
+                      "env.time_limit=3"]) == 0
+    rows = (out / "suite.csv").read_text().splitlines()
+    assert len(rows) == 1 + len(SCENARIOS) * 4 and rows[0].startswith("scenario,humans,policy,n_episodes")
+    assert "spl" in rows[0] and "min_ttc" in rows[0]
+    table = (out / "suite.md").read_text()
+    assert "| robot_crowding | 30 | straight |" in table
+    assert sorted(p.stem for p in (out / "thumbnails").glob("*.png")) == sorted(SCENARIOS)
+    assert f"[{len(SCENARIOS) * 4}/{len(SCENARIOS) * 4}]" in capsys.readouterr().out

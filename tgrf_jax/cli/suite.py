@@ -1,0 +1,109 @@
+"""`tgrf-eval --suite DIR`: a policy on every scenario x crowd size, with fixed test seeds, as one table.
+
+Every row plays the same compiled evaluation: the env is `scenario: mix` with one-hot `scenario_weights` (which
+plays exactly that scenario's episodes) and the crowd size set by `active_humans_min = active_humans_max`, all
+traced params. The capacity is the largest size for baselines; a trained policy keeps the capacity it was trained
+with (its network reads observations of that shape), and larger crowds are left out of its table.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import pathlib
+import time
+
+SUITE_SIZES = (5, 10, 20, 30)
+# Columns of the Markdown table (the CSV holds every metric).
+TABLE_COLUMNS = (
+    ("success_rate", "SR", "{:.1%}"), ("collision_rate", "coll.", "{:.1%}"), ("timeout_rate", "timeout", "{:.1%}"),
+    ("nav_time", "NT (s)", "{:.2f}"), ("path_length", "PL (m)", "{:.2f}"), ("spl", "SPL", "{:.3f}"),
+    ("itr_disc", "ITR disc (%)", "{:.2f}"), ("min_dist_human", "min dist (m)", "{:.3f}"),
+    ("personal_space_compliance", "PS (%)", "{:.1f}"), ("min_ttc", "min TTC (s)", "{:.2f}"),
+    ("jerk_mean", "jerk (m/s^3)", "{:.2f}"), ("time_stalled", "stalled (s)", "{:.2f}"),
+)
+
+
+def suite_env_config(env_config, capacity: int):
+    """The suite's env: every scenario selectable by weights, `capacity` human slots."""
+    return dataclasses.replace(env_config, scenario="mix", num_humans=capacity, active_humans_min=None,
+                               active_humans_max=None, scenario_weights=None)
+
+
+def run_suite(config, policies: dict, out_dir, *, episodes: int, seed: int, sizes=SUITE_SIZES, capacity=None,
+              thumbnails: bool = True, log=print) -> list[dict]:
+    """Evaluate each of `policies` (name -> Policy) on every scenario x size; writes `suite.md`, `suite.csv` and
+    `thumbnails/<scenario>.png` under `out_dir` and returns the rows."""
+    import jax
+    import jax.numpy as jnp
+
+    from tgrf_jax.config import SCENARIOS
+    from tgrf_jax.env import CrowdNavEnv
+    from tgrf_jax.evaluate import evaluate
+
+    capacity = max(sizes) if capacity is None else capacity
+    env = CrowdNavEnv(suite_env_config(config.env, capacity), config.reward)
+    base = env.default_params
+    played = [n for n in sizes if n <= capacity]
+    skipped = [n for n in sizes if n > capacity]
+    if skipped:
+        log(f"suite: crowd sizes {skipped} exceed the policy's {capacity} human slots; left out")
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    total, done = len(SCENARIOS) * len(played) * len(policies), 0
+    t0 = time.perf_counter()
+    for s, name in enumerate(SCENARIOS):
+        weights = jnp.zeros(len(SCENARIOS), jnp.float32).at[s].set(1.0)
+        for n in played:
+            params = params_for(base, weights, n)
+            for label, policy in policies.items():
+                result = evaluate(env, policy, jax.random.key(seed), episodes, params=params)
+                done += 1
+                rows.append(dict(scenario=name, humans=n, policy=label, **result.to_dict()))
+                log(f"[{done}/{total}] {name:22s} {n:3d} humans  {label:10s} SR {result.success_rate:6.1%}  "
+                    f"coll. {result.collision_rate:6.1%}  ({time.perf_counter() - t0:.0f} s)")
+        if thumbnails:
+            _thumbnail(env, next(iter(policies.values())), params_for(base, weights, min(10, capacity)), seed,
+                       out / "thumbnails" / f"{name}.png", name)
+    _write_tables(rows, out)
+    log(f"wrote {out / 'suite.md'}, {out / 'suite.csv'}" + (f" and {len(SCENARIOS)} thumbnails" if thumbnails else ""))
+    return rows
+
+
+def params_for(base, weights, n):
+    """`base` playing the scenario of one-hot `weights` with exactly n humans."""
+    import jax.numpy as jnp
+
+    return base.replace(scenario_weights=weights, active_humans_min=jnp.float32(n), active_humans_max=jnp.float32(n))
+
+
+def _thumbnail(env, policy, params, seed, path: pathlib.Path, title: str):
+    """One episode's frame after 6 s (or its end), trails of the last 6 s, as a small PNG."""
+    from tgrf_jax.render import eval_key, record_episodes
+    from tgrf_jax.render.draw import draw_frame, new_figure
+
+    ep = record_episodes(env, policy, eval_key(seed), 1, params)[0]
+    fig, ax = new_figure(size=(4.0, 4.4), dpi=60)
+    draw_frame(ax, ep, min(ep.steps, 24), trail_steps=24, show_legend=False)
+    ax.set_title(title, fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+
+
+def _cell(value, fmt):
+    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else fmt.format(value)
+
+
+def _write_tables(rows: list[dict], out: pathlib.Path) -> None:
+    header = "| scenario | humans | policy | " + " | ".join(label for _, label, _ in TABLE_COLUMNS) + " |"
+    lines = [header, "|" + "---|" * (len(TABLE_COLUMNS) + 3)]
+    for r in rows:
+        lines.append(f"| {r['scenario']} | {r['humans']} | {r['policy']} | "
+                     + " | ".join(_cell(r[f], fmt) for f, _, fmt in TABLE_COLUMNS) + " |")
+    (out / "suite.md").write_text("\n".join(lines) + "\n")
+    with open(out / "suite.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
