@@ -16,6 +16,8 @@ For each (network, size, num_envs) on the paper scenario (20 humans, TGRF reward
     python -m benchmarks.train_throughput --quick --out bench_results/train_quick.json
     python -m benchmarks.train_throughput --out bench_results/train_full.json
     python -m benchmarks.train_throughput --quick --predictor gst --out bench_results/train_gst.json
+    python -m benchmarks.train_throughput --nets hh_attn/small --envs 256 --against-plain --env-set scenario=mix \
+        --env-set num_humans=30 --env-set active_humans_min=5 --env-set active_humans_max=30   # mix vs paper scenario
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import yaml
 
 from benchmarks.common import machine_info, time_call, write_json
 from tgrf_jax import configure_cpu
@@ -75,9 +78,9 @@ def matmul_reference_gflops(rows: int = 3840, repeats: int = 20) -> float:
 
 def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,
             breakdown: bool, repeats: int, epochs: int, minibatches: int, microbatch_envs: int,
-            num_shards: int, predictor: str = "const_vel") -> dict:
+            num_shards: int, predictor: str = "const_vel", env_overrides: dict | None = None) -> dict:
     cfg = TrainConfig.from_dict({
-        "env": {"num_humans": 20, "human_policy": human_policy, "predictor": predictor},
+        "env": {"num_humans": 20, "human_policy": human_policy, "predictor": predictor, **(env_overrides or {})},
         "network": {"name": name, "size": size},
         "ppo": {"num_envs": num_envs, "num_steps": num_steps, "num_shards": num_shards,
                 "num_minibatches": minibatches if num_envs % (num_shards * minibatches) == 0 else 1,
@@ -103,7 +106,7 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
     run_s = sorted(runs)[len(runs) // 2]
     out = {
         "network": name, "size": size, "num_envs": num_envs, "num_steps": num_steps, "human_policy": human_policy,
-        "predictor": predictor,
+        "predictor": predictor, "env_overrides": env_overrides or {},
         "num_shards": num_shards, "shard_placement": shards.describe(num_shards, tr.mesh),
         "update_epochs": cfg.ppo.update_epochs, "num_minibatches": cfg.ppo.num_minibatches,
         "microbatches": cfg.ppo.num_microbatches,
@@ -172,7 +175,21 @@ def main(argv=None):
                         help="rollout length per update (default: the embedded default config's)")
     parser.add_argument("--microbatch-envs", type=int, default=default_ppo.microbatch_envs,
                         help="envs per gradient slice (default: the embedded default config's; 0: whole minibatch)")
+    parser.add_argument("--env-set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="an env setting for every point (repeatable), e.g. --env-set scenario=mix "
+                        "--env-set num_humans=30 --env-set active_humans_min=5")
+    parser.add_argument("--against-plain", action="store_true",
+                        help="with --env-set: also measure the plain paper scenario (20 humans) in the same run "
+                        "and print the ratio")
     args = parser.parse_args(argv)
+    overrides = {}
+    for item in args.env_set:
+        field, sep, value = item.partition("=")
+        if not sep or not field:
+            parser.error(f"--env-set {item!r}: expected FIELD=VALUE, e.g. scenario=mix")
+        overrides[field] = yaml.safe_load(value)
+    if args.against_plain and not overrides:
+        parser.error("--against-plain compares against --env-set settings: give at least one")
     configure_cpu(args.shards)  # before JAX touches its backend
     if args.quick:
         nets = args.nets or ["hh_attn/small"]
@@ -191,13 +208,20 @@ def main(argv=None):
         for n in envs:
             if size == "paper" and name == "hh_attn" and n > 256 and not args.envs:
                 continue  # minutes per point on 2 cores
-            r = measure(name, size, n, args.human_policy, args.num_steps, updates, breakdown, repeats, args.epochs,
-                        args.minibatches, args.microbatch_envs, args.shards, args.predictor)
-            results.append(r)
-            print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} {r.get('env_s', 0):>7.3f} "
-                  f"{r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f} {'':>12} "
-                  f"{r.get('learn_gflops') or 0:>13.1f} {r.get('matmul_reference_gflops', 0):>10.1f} "
-                  f"{r.get('learn_bound_sps', 0):>15,.0f}", flush=True)
+            variants = ([{}] if args.against_plain else []) + [overrides]
+            for env_overrides in variants:
+                r = measure(name, size, n, args.human_policy, args.num_steps, updates, breakdown, repeats,
+                            args.epochs, args.minibatches, args.microbatch_envs, args.shards, args.predictor,
+                            env_overrides)
+                results.append(r)
+                label = ",".join(f"{k}={v}" for k, v in env_overrides.items()) or "plain"
+                print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} "
+                      f"{r.get('env_s', 0):>7.3f} {r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f} "
+                      f"{'':>12} {r.get('learn_gflops') or 0:>13.1f} {r.get('matmul_reference_gflops', 0):>10.1f} "
+                      f"{r.get('learn_bound_sps', 0):>15,.0f}  [{label}]", flush=True)
+            if args.against_plain:
+                print(f"{'':>14} {n:>5} ratio {results[-1]['train_sps'] / results[-2]['train_sps']:.2f}x of the "
+                      f"plain scenario's rate", flush=True)
     write_json(args.out, {"machine": machine_info(), "benchmark": "train_throughput", "quick": args.quick,
                           "results": results})
 
