@@ -73,8 +73,6 @@ def main(argv: list[str] | None = None) -> int:
         return _suite(args, sc)
 
     from tgrf_jax.evaluate import evaluate_params, evaluate_state, format_eval
-    from tgrf_jax.storage.checkpoint import CheckpointError
-    from tgrf_jax.train.run_dir import restore_run
 
     if sc.params is not None:
         print(f"pretrained {sc.pretrained} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}",
@@ -84,13 +82,9 @@ def main(argv: list[str] | None = None) -> int:
                                   progress=episode_progress)
         payload.update(pretrained=sc.pretrained)
     elif sc.run_dir is not None:
-        try:
-            check_observation_fits(sc)
-            _, state = restore_run(sc.run_dir, args.step)
-        except CheckpointError as e:
-            return checkpoint_error("tgrf-eval", e, f"tgrf-eval {sc.run_dir} --step")
-        except ConfigError as e:
-            return error("tgrf-eval", e)
+        state, status = _restore(sc, args.step, f"tgrf-eval {sc.run_dir} --step")
+        if state is None:
+            return status
         print(f"{sc.run_dir}: update {int(state.update)} on {jax.devices()[0].platform}; {args.episodes} episodes, "
               f"seed {args.seed}", flush=True)
         t0 = time.perf_counter()
@@ -115,6 +109,20 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _restore(sc, step, resume_hint: str):
+    """(the run's training state, None), or (None, the exit status) after printing why it cannot be restored."""
+    from tgrf_jax.storage.checkpoint import CheckpointError
+    from tgrf_jax.train.run_dir import restore_run
+
+    try:
+        check_observation_fits(sc)
+        return restore_run(sc.run_dir, step)[1], None
+    except CheckpointError as e:
+        return None, checkpoint_error("tgrf-eval", e, resume_hint)
+    except ConfigError as e:
+        return None, error("tgrf-eval", e)
+
+
 def _suite(args, sc) -> int:
     from tgrf_jax.cli.suite import run_suite
     from tgrf_jax.policies import baseline, make_network_for
@@ -124,16 +132,9 @@ def _suite(args, sc) -> int:
     if sc.params is not None or sc.run_dir is not None:
         params = sc.params
         if params is None:
-            from tgrf_jax.storage.checkpoint import CheckpointError
-            from tgrf_jax.train.run_dir import restore_run
-
-            try:
-                check_observation_fits(sc)
-                _, state = restore_run(sc.run_dir, args.step)
-            except CheckpointError as e:
-                return checkpoint_error("tgrf-eval", e, f"tgrf-eval {sc.run_dir} --suite {args.suite} --step")
-            except ConfigError as e:
-                return error("tgrf-eval", e)
+            state, status = _restore(sc, args.step, f"tgrf-eval {sc.run_dir} --suite {args.suite} --step")
+            if state is None:
+                return status
             params = state.params
         policies["learned"] = LearnedPolicy(make_network_for(config), params)
         capacity = config.env.num_humans
