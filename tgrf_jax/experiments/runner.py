@@ -26,7 +26,7 @@ import yaml
 
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import report
-from tgrf_jax.experiments.spec import Experiment, Row, sweep_args
+from tgrf_jax.experiments.spec import Experiment, Row, portable, sweep_args
 from tgrf_jax.storage.files import write_atomic
 
 EXPERIMENT_FILE = "experiment.yaml"
@@ -218,7 +218,7 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     started, commit = time.perf_counter(), source_commit()  # the code the sweep imports now, not at its end
     invocation = {"commit": commit, "machine": machine(), "exit_code": None,
                   "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-                  "command": " ".join(["tgrf-sweep"] + cmd[3:])}
+                  "command": " ".join(["tgrf-sweep"] + [portable(a) if a == exp.config else a for a in cmd[3:]])}
     wall_before = float(prov.get("wall_s", 0.0))
     prov["invocations"].append(invocation)
     row_dir.mkdir(parents=True, exist_ok=True)

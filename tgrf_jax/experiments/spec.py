@@ -36,6 +36,16 @@ PAPER_FIELDS = ("sr_mean", "sr_std", "sr", "nt", "pl", "itr")
 _TOP_KEYS = ("title", "description", "layout", "config", "set", "seeds", "grid", "columns", "rows", "notes")
 _ROW_KEYS = ("name", "label", "set", "grid", "paper")
 EXPERIMENTS_DIR = pathlib.Path(__file__).resolve().parents[2] / "configs" / "experiments"
+REPO_ROOT = EXPERIMENTS_DIR.parents[1]
+
+
+def portable(path: str) -> str:
+    """`path` relative to the repository when it lies inside it: what result files record, so that a results
+    directory moved to another machine or checkout still matches (absolute paths elsewhere are kept)."""
+    try:
+        return pathlib.Path(path).resolve().relative_to(REPO_ROOT).as_posix()
+    except ValueError:
+        return path
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,7 +119,8 @@ class Experiment:
 
     def to_dict(self) -> dict:
         return {
-            "name": self.name, "title": self.title, "layout": self.layout, "config": self.config,
+            "name": self.name, "title": self.title, "layout": self.layout,
+            "config": portable(self.config) if self.config else None,
             "seeds": self.seeds,
             "rows": [{"name": r.name, "set": list(r.overrides), "grid": {k: list(v) for k, v in r.grid}}
                      for r in self.rows],
