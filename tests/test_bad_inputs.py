@@ -378,9 +378,12 @@ def _issue_41_places(tmp, config_text):
     (tmp / "quoted.yaml").write_text("env:\n  num_humans: '5'\n")
     for name in ("nodigest", "headerless", "latin", "truncated", "truncated_meta", "tornconfig", "binconfig"):
         shutil.copytree(tmp / "run", tmp / name)
-    # a crash or a full disk mid-copy: the step's largest data file cut to nothing; or an array's metadata (whose
-    # read error carries tensorstore's whole store spec)
-    data_files = [f for f in (tmp / "truncated" / "checkpoints" / "0").rglob("*") if f.is_file()]
+    # a crash or a full disk mid-copy: the step's largest array data file cut to nothing (chosen among tensorstore's
+    # data files only: in a tiny run the JSON metadata can be the largest file); or an array's metadata (whose read
+    # error carries tensorstore's whole store spec)
+    data_files = [f for f in (tmp / "truncated" / "checkpoints" / "0" / "default").glob("ocdbt.process_*/d/*")
+                  if f.is_file()]
+    assert data_files, "the checkpoint layout has no tensorstore data files to truncate"
     max(data_files, key=lambda f: f.stat().st_size).write_bytes(b"")
     meta_files = [f for f in (tmp / "truncated_meta" / "checkpoints" / "0" / "default" / "d").iterdir()]
     max(meta_files, key=lambda f: f.stat().st_size).write_bytes(b"")
