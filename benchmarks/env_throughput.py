@@ -103,14 +103,14 @@ def gst_flops_per_env_step(num_humans: int) -> float:
 
 
 def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int, plain: bool = True,
-            mesh=None, predictor: str = "const_vel") -> dict:
+            mesh=None, predictor: str = "const_vel", extra: dict | None = None) -> dict:
     """One grid point: `vmap(step)` (unless not `plain`) and, from batch 16, `step_batch`, also over the devices
-    of `mesh` (if given and the batch splits into slices of at least 16)."""
-    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": predictor})
+    of `mesh` (if given and the batch splits into slices of at least 16). `extra`: more env settings."""
+    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": predictor, **(extra or {})})
     params = env.default_params
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(0), batch), params)
     row = {"policy": policy, "num_humans": num_humans, "batch": batch, "steps_per_call": n_steps,
-           "predictor": predictor}
+           "predictor": predictor, **(extra or {})}
     runners = {}
     if plain or batch < 16:
         runners["env_steps_per_s"] = make_runner(env, n_steps)[0]
@@ -134,17 +134,18 @@ def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int
     return row
 
 
-def breakdown(policy: str, num_humans: int, batch: int, repeats: int) -> dict:
+def breakdown(policy: str, num_humans: int, batch: int, repeats: int, extra: dict | None = None) -> dict:
     """Milliseconds per batched call of the pieces of one auto-reset step."""
     from tgrf_jax.env import humans as humans_lib
 
-    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": "const_vel"})
+    env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": "const_vel", **(extra or {})})
     params = env.default_params
     keys = jax.random.split(jax.random.key(0), batch)
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     actions = jax.vmap(StraightPolicy.action)(obs)
     pieces = {
-        "human_policy": (lambda s: humans_lib.human_velocities(s.humans, None, params, env.config, s.orca_neighbor_dist), (state,)),
+        "human_policy": (lambda s: humans_lib.human_velocities(s.humans, None, params, env.config,
+                                                               s.orca_neighbor_dist, s.obstacles), (state,)),
         "reset": (lambda k: env.reset(k, params), (keys,)),
         "step_without_reset": (lambda k, s, a: env.step_env(k, s, a, params), (keys, state, actions)),
         "step_with_auto_reset": (lambda k, s, a: env.step(k, s, a, params), (keys, state, actions)),
@@ -154,6 +155,39 @@ def breakdown(policy: str, num_humans: int, batch: int, repeats: int) -> dict:
         _, run_s = time_call(jax.jit(jax.vmap(fn)), *args, repeats=repeats)
         out[name] = round(run_s * 1e3, 3)
     return out
+
+
+OBSTACLE_ROWS = (
+    ("open space", {}),
+    ("open space + LiDAR 180", {"lidar_rays": 180}),
+    ("random_obstacles", {"scenario": "random_obstacles"}),
+    ("random_obstacles + LiDAR 180", {"scenario": "random_obstacles", "lidar_rays": 180}),
+)
+
+
+def obstacle_costs(mesh, out) -> None:
+    """`--obstacles`: the env step's rate with obstacles and a LiDAR against the open space, in one run."""
+    batch, repeats = 1024, 3
+    info = machine_info()
+    print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")
+    d = 1 if mesh is None else mesh.devices.size
+    print(f"{'env':>30} {'compile s':>9} {'step_batch':>12} {f'on {d} devices':>14} {'ratio':>6}")
+    rows = []
+    for label, extra in OBSTACLE_ROWS:
+        row = measure("orca", 20, batch, scan_length(batch, False), repeats, plain=False, mesh=mesh, extra=extra)
+        row["label"] = label
+        rows.append(row)
+        rate = row.get("step_batch_devices_env_steps_per_s", row["step_batch_env_steps_per_s"])
+        row["ratio_to_open_space"] = rate / rows[0].get("step_batch_devices_env_steps_per_s",
+                                                        rows[0]["step_batch_env_steps_per_s"])
+        print(f"{label:>30} {row['compile_s']:>9.1f} {row['step_batch_env_steps_per_s']:>12,.0f} "
+              f"{row.get('step_batch_devices_env_steps_per_s', float('nan')):>14,.0f} "
+              f"{row['ratio_to_open_space']:>6.2f}", flush=True)
+    parts = {label: breakdown("orca", 20, batch, repeats, extra) for label, extra in OBSTACLE_ROWS[::2]}
+    for label, ms in parts.items():
+        print(f"where the time goes, {label}, batch {batch} (ms per batched call): {ms}")
+    write_json(out, {"benchmark": "env_throughput", "obstacles": True, "machine": info, "results": rows,
+                     "breakdown_ms_batch1024": parts})
 
 
 def scan_length(batch: int, quick: bool) -> int:
@@ -172,6 +206,10 @@ def main(argv=None):
     parser.add_argument("--gst-only", action="store_true",
                         help="only 20 ORCA humans at batches 256 and 1024, const_vel against the learned gst "
                              "predictor")
+    parser.add_argument("--obstacles", action="store_true",
+                        help="20 ORCA humans at batch 1024 on the trainer's path: the paper's open space against "
+                             "random_obstacles (up to 8 boxes), each with and without a 180-ray LiDAR, and what "
+                             "the obstacles cost in the ORCA solve")
     parser.add_argument("--devices", type=int, default=len(os.sched_getaffinity(0)),
                         help="CPU devices for the sharded step_batch column (default: one per core; 1: skip it)")
     args = parser.parse_args(argv)
@@ -180,6 +218,8 @@ def main(argv=None):
     if args.devices > 1 and len(jax.devices()) >= args.devices:
         mesh = jax.sharding.Mesh(jax.devices()[:args.devices], (ENV_AXIS,))
 
+    if args.obstacles:
+        return obstacle_costs(mesh, args.out)
     if args.gst_only:
         grid = [("orca", 20, b, p) for b in (256, 1024) for p in ("const_vel", "gst")]
         repeats = 2

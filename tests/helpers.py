@@ -12,6 +12,7 @@ import orbax.checkpoint as ocp
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax.config import TrainConfig
 from tgrf_jax.env import EnvState, Humans, Robot
+from tgrf_jax.env import obstacles as obstacles_lib
 
 
 def signal_this_thread(sig: int) -> None:
@@ -63,7 +64,8 @@ def hand_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None
     )
     return EnvState(robot=robot, humans=humans, goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
                     step_count=jnp.zeros((), jnp.int32), orca_neighbor_dist=jnp.float32(neighbor_dist),
-                    scenario=jnp.zeros((), jnp.int32))
+                    scenario=jnp.zeros((), jnp.int32), obstacles=obstacles_lib.empty(),
+                    obstacles_dropped=jnp.zeros((), jnp.int32))
 
 
 def rollout(env, key, params, n_steps, policy_fn):

@@ -131,7 +131,7 @@ def test_crowd_bounds_default_to_capacity():
 
 # ------------------------------------------------------------------------------------------------ scenarios
 
-from tgrf_jax.config import SCENARIOS  # noqa: E402
+from tgrf_jax.config import CROWD_SCENARIOS, SCENARIOS  # noqa: E402
 
 
 def _reset_many(env, n=128, seed=7, params=None):
@@ -194,9 +194,9 @@ def test_mix_draws_scenarios_by_weight_in_one_program():
     params = env.default_params
     reset = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
     keys = jax.random.split(jax.random.key(3), 800)
-    counts = np.bincount(np.asarray(reset(keys, params)[1].scenario), minlength=len(SCENARIOS))
+    counts = np.bincount(np.asarray(reset(keys, params)[1].scenario), minlength=len(CROWD_SCENARIOS))
     assert np.all(counts > 60)  # about 100 each
-    weights = np.zeros(len(SCENARIOS), np.float32)
+    weights = np.zeros(len(CROWD_SCENARIOS), np.float32)
     weights[[2, 5]] = [1.0, 3.0]
     weighted = params.replace(scenario_weights=jnp.asarray(weights))
     with CompileCounter() as counter:
@@ -209,8 +209,8 @@ def test_mix_draws_scenarios_by_weight_in_one_program():
 def test_mix_with_one_weight_plays_that_scenario(name):
     """A one-hot mix plays the scenario's own episodes (same keys, same draws; up to FMA contraction, which
     differently compiled programs apply to different products)."""
-    weights = [0.0] * len(SCENARIOS)
-    weights[SCENARIOS.index(name)] = 1.0
+    weights = [0.0] * len(CROWD_SCENARIOS)
+    weights[CROWD_SCENARIOS.index(name)] = 1.0
     plain = make_env(num_humans=5, scenario=name)
     mix = make_env(num_humans=5, scenario="mix", scenario_weights=weights)
     for env_a, env_b in ((plain, mix),):
@@ -227,13 +227,15 @@ def test_mix_with_one_weight_plays_that_scenario(name):
 
 
 @pytest.mark.parametrize("fields, message", [
-    ({"scenario": "corridor"}, "env.scenario = 'corridor' is not allowed; allowed: one of 'circle_crossing', "
-                               "'square_crossing', 'parallel_traffic'"),
+    ({"scenario": "hallway"}, "env.scenario = 'hallway' is not allowed; allowed: one of 'circle_crossing', "
+                              "'square_crossing', 'parallel_traffic'"),
     ({"scenario": "mix", "scenario_weights": [1, 1]}, "env.scenario_weights has 2 value"),
     ({"scenario": "mix", "scenario_weights": [1, 1, 1, -1, 1, 1, 1, 1]}, "has a negative or non-finite weight"),
     ({"scenario": "mix", "scenario_weights": [0] * 8}, "are all zero; allowed: 8 non-negative numbers"),
-    ({"scenario_weights": "uniform"}, "env.scenario_weights = 'uniform' must be a list of 8 numbers"),
-    ({"scenario_weights": [1, "x", 1, 1, 1, 1, 1, 1]}, r"env.scenario_weights\[1\] = 'x' must be a number"),
+    ({"scenario": "mix", "scenario_weights": "uniform"}, "env.scenario_weights = 'uniform' must be a list of 8 "
+                                                         "numbers"),
+    ({"scenario": "mix", "scenario_weights": [1, "x", 1, 1, 1, 1, 1, 1]},
+     r"env.scenario_weights\[1\] = 'x' must be a number"),
 ])
 def test_bad_scenarios(fields, message):
     with pytest.raises(ConfigError, match=message):
@@ -243,4 +245,4 @@ def test_bad_scenarios(fields, message):
 def test_bad_weights_in_params_are_caught_before_compiling():
     env = make_env(scenario="mix")
     with pytest.raises(ConfigError, match="are all zero"):
-        env.default_params.replace(scenario_weights=jnp.zeros(len(SCENARIOS))).validate()
+        env.default_params.replace(scenario_weights=jnp.zeros(len(CROWD_SCENARIOS))).validate()

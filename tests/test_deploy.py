@@ -57,10 +57,11 @@ def record(source: PolicySource, episodes: int = 2, max_steps: int = 40, seed: i
             new_carry, action = act(carry, batched, jnp.zeros(1, bool), k)
             r, h = jax.device_get(state.robot), jax.device_get(state.humans)
             o = jax.device_get(obs)
+            lidar = (o.lidar,) if config.env.lidar_rays else ()
             steps.append(dict(
                 robot=np.array([r.pos[0], r.pos[1], r.heading, r.vel[0], r.vel[1]]), goal=np.asarray(r.goal),
-                humans=np.concatenate([h.pos, h.vel, h.radius[:, None]], axis=1),
-                obs=(o.robot_node, o.robot_vel, o.humans, o.human_mask.astype(np.float32)),
+                humans=np.concatenate([h.pos, h.vel, h.radius[:, None]], axis=1), lidar=o.lidar,
+                obs=(o.robot_node, o.robot_vel, o.humans, o.human_mask.astype(np.float32), *lidar),
                 state=step_info.state_from_carry(carry), new_state=step_info.state_from_carry(new_carry),
                 action=np.asarray(action[0])))
             key, k = jax.random.split(key)
@@ -169,7 +170,7 @@ def replay(nav: Navigator, episodes, with_ids: bool = True) -> float:
         nav.reset()
         for s in ep:
             ids = list(range(len(s["humans"]))) if with_ids else None
-            d = nav.act(s["robot"], s["goal"], s["humans"], ids=ids)
+            d = nav.act(s["robot"], s["goal"], s["humans"], s["lidar"] if nav.lidar_rays else None, ids=ids)
             worst = max(worst, float(np.max(np.abs(d.action - s["action"]))))
     return worst
 
@@ -278,3 +279,103 @@ def test_interface_json_is_self_contained(exported):
     action, new_state = session.run(None, feeds)
     assert action.shape == (2,) and new_state.shape == tuple(spec["outputs"][1]["shape"])
     assert action[0] > 0  # an empty world: head for the goal
+
+
+# -------------------------------------------------------------------------------------------- a policy with a LiDAR
+
+RAYS = 16
+
+
+@pytest.fixture(scope="module")
+def lidar_source():
+    # An untrained small HH Attn (its scan encoder included) in the corridor, whose walls the scan sees.
+    config = TrainConfig.from_dict({"env": {"scenario": "corridor", "lidar_rays": RAYS, "num_humans": 3,
+                                            "human_policy": "social_force", "predictor": "none"}})
+    params = jax.device_get(jax.jit(make_network_for(config).init)(jax.random.PRNGKey(5)))
+    return PolicySource(config, params, {"test": "untrained lidar"})
+
+
+@pytest.fixture(scope="module")
+def lidar_episodes(lidar_source):
+    return record(lidar_source, episodes=1, max_steps=8)
+
+
+@pytest.fixture(scope="module")
+def lidar_exported(tmp_path_factory, lidar_source):
+    from tgrf_jax.deploy import export
+
+    return export(lidar_source, tmp_path_factory.mktemp("export") / "lidar", say=lambda m: None)
+
+
+def test_lidar_export_matches_env_policy(lidar_exported, lidar_episodes):
+    scans = np.array([s["lidar"] for s in lidar_episodes[0]])
+    assert scans.shape == (8, RAYS) and scans.min() < 5.0 and scans.max() == 5.0  # walls seen and open rays
+    spec = read_interface(lidar_exported)
+    names = [i["name"] for i in spec["inputs"]]
+    assert names == ["robot_node", "robot_vel", "humans", "human_mask", "lidar", "state"]
+    lidar = spec["inputs"][4]
+    assert lidar["shape"] == [RAYS] and lidar["units"] == "m" and lidar["values"]["max_range_m"] == 5.0
+    assert "heading" in lidar["frame"] and "pi/2" in lidar["frame"]  # holonomic: the heading the policy expects
+    assert spec["network"]["lidar_rays"] == RAYS and spec["robot"]["lidar_rays"] == RAYS
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(lidar_exported / spec["files"]["onnx"]), providers=["CPUExecutionProvider"])
+    assert [i.name for i in session.get_inputs()] == names
+    assert [i.shape for i in session.get_inputs()] == [i["shape"] for i in spec["inputs"]]
+    for run in (OnnxRuntime(lidar_exported), StableHloRuntime(lidar_exported)):
+        worst = 0.0
+        for s in lidar_episodes[0]:
+            action, new_state = run(*s["obs"], s["state"])
+            worst = max(worst, float(np.max(np.abs(action - s["action"]))),
+                        float(np.max(np.abs(new_state - s["new_state"]))))
+        assert worst <= 1e-5, (type(run).__name__, worst)
+        # beyond the range reads as the range, NaN as no return (the range)
+        s = lidar_episodes[0][-1]
+        far = s["obs"][:4] + (np.where(s["lidar"] >= 5.0, np.float32(np.nan), s["lidar"]).astype(np.float32),)
+        far2 = s["obs"][:4] + (np.where(s["lidar"] >= 5.0, np.float32(40.0), s["lidar"]).astype(np.float32),)
+        np.testing.assert_allclose(run(*far, s["state"])[0], s["action"], atol=1e-5)
+        np.testing.assert_allclose(run(*far2, s["state"])[0], s["action"], atol=1e-5)
+    with pytest.raises(ValueError, match="takes 6 inputs"):
+        OnnxRuntime(lidar_exported)(*lidar_episodes[0][0]["obs"][:4], lidar_episodes[0][0]["state"])
+
+
+def test_navigator_with_lidar(lidar_source, lidar_exported, lidar_episodes):
+    nav = Navigator(lidar_source)
+    assert nav.lidar_rays == RAYS and "lidar_rays=16" in repr(nav)
+    assert replay(nav, lidar_episodes) <= 1e-5
+    assert replay(Navigator(lidar_exported, runtime="onnx"), lidar_episodes) <= 1e-5
+
+    s = lidar_episodes[0][3]
+    nav.reset()
+    ref = nav.act(s["robot"], s["goal"], s["humans"], s["lidar"])
+    assert ref.num_lidar_invalid == 0
+    # a holonomic robot facing +x (the env keeps heading pi/2): its scan is the env's turned by a quarter turn
+    facing_x = s["robot"].copy()
+    facing_x[2] = 0.0
+    nav.reset()
+    turned = nav.act(facing_x, s["goal"], s["humans"], np.roll(s["lidar"], RAYS // 4))
+    np.testing.assert_array_equal(turned.action, ref.action)
+    # non-finite rays read as the sensor range, counted like dropped detections
+    open_rays = np.flatnonzero(s["lidar"] >= 5.0)
+    assert len(open_rays) >= 2
+    scan = s["lidar"].astype(np.float64).copy()
+    scan[open_rays[0]], scan[open_rays[1]] = np.nan, np.inf
+    nav.reset()
+    fixed = nav.act(s["robot"], s["goal"], s["humans"], scan)
+    assert fixed.num_lidar_invalid == 2 and nav.lidar_invalid_total == 2
+    np.testing.assert_array_equal(fixed.action, ref.action)
+    nav.reset()
+    far = np.where(s["lidar"] >= 5.0, 30.0, s["lidar"])  # beyond the range: clipped to it
+    np.testing.assert_array_equal(nav.act(s["robot"], s["goal"], s["humans"], far).action, ref.action)
+    nav.reset()
+    nearer = s["lidar"].copy()
+    nearer[open_rays[0]] = 0.5
+    assert not np.allclose(nav.act(s["robot"], s["goal"], s["humans"], nearer).action, ref.action)
+
+    cases = [(None, r"lidar: this policy reads a 16-ray 2-D LiDAR scan.*ray 0 along the robot's heading"),
+             (np.ones(360), r"lidar has 360 rays but this policy was trained on 16 rays"),
+             (np.ones((2, 16)), r"lidar has shape \(2, 16\) but this policy was trained on 16 rays"),
+             (np.r_[np.ones(15), -1.0], r"lidar\[15\] = -1.0: a range must be >= 0 m")]
+    for lidar, message in cases:
+        with pytest.raises(ValueError, match=message):
+            nav.act(s["robot"], s["goal"], s["humans"], lidar)

@@ -104,3 +104,38 @@ def test_vector_env_make_vec_and_bad_input():
         CrowdNavVectorEnv(0, SMALL)
     with pytest.raises(ValueError, match="seed must be an integer"):
         venv.reset(seed=-1)
+
+
+LIDAR = {"num_humans": 2, "time_limit": 3.0, "scenario": "corridor", "lidar_rays": 12,
+         "human_policy": "social_force", "predictor": "none"}
+
+
+def test_lidar_scan_is_part_of_the_observation():
+    env = gymnasium.make(ENV_ID, config=LIDAR).unwrapped
+    layout = obs_layout(env.env)
+    assert list(layout) == ["robot_node", "robot_vel", "humans", "human_mask", "lidar"]
+    assert layout["lidar"] == slice(7 + 2 + 2 * 2 + 2, 7 + 2 + 2 * 2 + 2 + 12)
+    space = env.observation_space
+    assert space.shape == (layout["lidar"].stop,)
+    np.testing.assert_array_equal(space.low[layout["lidar"]], 0.0)
+    np.testing.assert_array_equal(space.high[layout["lidar"]], np.float32(5.0))  # the sensor range
+    assert space.high[0] == space.high[layout["human_mask"]][0] > 1e5  # the rest keeps the wide bounds
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env)
+    assert not caught, [str(w.message) for w in caught]
+    # without a scan the layout ends with the mask, as before
+    assert list(obs_layout(CrowdNavEnv(dict(LIDAR, lidar_rays=0)))) == ["robot_node", "robot_vel", "humans",
+                                                                         "human_mask"]
+
+    # the vector env's scan is the batched env's Obs.lidar, body frame and all
+    b = 3
+    venv = CrowdNavVectorEnv(b, LIDAR)
+    obs, _ = venv.reset(seed=0)
+    raw = CrowdNavEnv(LIDAR)
+    _, k = jax.random.split(jax.random.PRNGKey(0))
+    ref_obs, _ = jax.jit(jax.vmap(raw.reset_env, in_axes=(0, None)))(jax.random.split(k, b), raw.default_params)
+    np.testing.assert_allclose(obs[:, layout["lidar"]], np.asarray(ref_obs.lidar), atol=1e-5)
+    assert obs[:, layout["lidar"]].min() < 5.0  # the corridor's walls are in range
+    obs, *_ = venv.step(np.zeros((b, 2), np.float32))
+    assert obs in venv.observation_space

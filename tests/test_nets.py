@@ -1,12 +1,14 @@
 """Policy networks: shapes, masking, parameter counts, recurrent resets, sequence form, gradients."""
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.env.types import Obs
 from tgrf_jax.policies.nets import (
     NETWORK_NAMES,
@@ -15,16 +17,20 @@ from tgrf_jax.policies.nets import (
     make_network,
     masked_softmax,
 )
-from tgrf_jax.policies.nets.common import TorchGRUCell
+from tgrf_jax.policies.nets.common import LidarEncoderSize, TorchGRUCell
+from tgrf_jax.policies.nets.dsrnn import DSRNN_SIZES
+from tgrf_jax.policies.nets.hh_attn import HH_ATTN_SIZES
+from tgrf_jax.policies.nets.mlp import MLP_SIZES
 
 B, N = 3, 20
 RECURRENT = ("hh_attn", "dsrnn")
 
 
-def random_obs(key, batch_shape, num_humans, dim, num_visible=None):
-    """Random observation batch laid out like the env's: visible rows first, zeros in invisible rows."""
+def random_obs(key, batch_shape, num_humans, dim, num_visible=None, lidar_rays=0):
+    """Random observation batch laid out like the env's: visible rows first, zeros in invisible rows; a scan of
+    `lidar_rays` ranges in [0, 6] m (beyond the default 5 m sensor range, to exercise the clipping)."""
     batch_shape = tuple(batch_shape)
-    k = jax.random.split(key, 5)
+    k = jax.random.split(key, 6)
     if num_visible is None:
         num_visible = jax.random.randint(k[0], batch_shape, 0, num_humans + 1)
     mask = jnp.arange(num_humans) < jnp.asarray(num_visible)[..., None]
@@ -38,12 +44,14 @@ def random_obs(key, batch_shape, num_humans, dim, num_visible=None):
         human_mask=mask,
         human_vel=jnp.zeros(batch_shape + (num_humans, 2)),
         human_radius=jnp.zeros(batch_shape + (num_humans,)),
+        lidar=jax.random.uniform(k[5], batch_shape + (lidar_rays,), maxval=6.0),
+        obstacles=Obstacles(jnp.zeros(batch_shape + (0, 2, 2)), jnp.zeros(batch_shape + (0,), jnp.int32)),
     )
 
 
 @functools.lru_cache(maxsize=None)
-def built(name, size, dim, num_humans=N):
-    net = make_network(name, size, obs_human_dim=dim, num_humans=num_humans)
+def built(name, size, dim, num_humans=N, lidar_rays=0):
+    net = make_network(name, size, obs_human_dim=dim, num_humans=num_humans, lidar_rays=lidar_rays)
     # an "rbg" key compiles the random initialisers faster than threefry; `PRNGKey` keys are tested below. Jitted:
     # run eagerly, every initialiser of every distinct layer shape is a program of its own (hundreds for hh_attn).
     params = jax.jit(net.init)(jax.random.key(0, impl="rbg"))
@@ -75,8 +83,8 @@ def test_make_network_rejects_unknown_names():
         make_network("hh_attn", "huge", 12, 20)
 
 
-def n_params(name, size, dim, num_humans=N):
-    net = make_network(name, size, obs_human_dim=dim, num_humans=num_humans)
+def n_params(name, size, dim, num_humans=N, lidar_rays=0):
+    net = make_network(name, size, obs_human_dim=dim, num_humans=num_humans, lidar_rays=lidar_rays)
     return count_params(jax.eval_shape(net.init, jax.random.PRNGKey(0)))
 
 
@@ -116,11 +124,48 @@ def test_param_counts_match_reference():
     assert count_params(jax.jit(net.init)(jax.random.PRNGKey(0))) == n_params("mlp", "small", 12)
 
 
+@pytest.mark.parametrize("rays", [1, 36, 360, 1001])
+def test_lidar_param_counts(rays):
+    """The scan adds exactly its encoder and the wider GRU input (MLP: the wider first layers); without a scan the
+    networks are the reference's (see above), with no LiDAR parameter at all."""
+    for name, sizes in (("hh_attn", HH_ATTN_SIZES), ("dsrnn", DSRNN_SIZES)):
+        for size in NETWORK_SIZES:
+            s = sizes[size]
+            gru_width = s.gru if name == "hh_attn" else s.node_rnn
+            encoder = LidarEncoderSize.num_params(s.lidar, rays)
+            # hand count of the encoder: two circular convolutions of width 5 and stride 2, then the dense layer
+            c1, c2 = s.lidar.channels
+            length = math.ceil(math.ceil(rays / 2) / 2)
+            assert encoder == (5 * c1 + c1) + (c1 * 5 * c2 + c2) + (length * c2 + 1) * s.lidar.embed
+            extra = n_params(name, size, 12, lidar_rays=rays) - n_params(name, size, 12)
+            assert extra == encoder + 3 * gru_width * s.lidar.embed, (name, size)
+    hidden = MLP_SIZES["small"]
+    assert n_params("mlp", "small", 12, lidar_rays=rays) - n_params("mlp", "small", 12) == 2 * rays * hidden
+    without = jax.eval_shape(make_network("dsrnn", "small", 12, N, lidar_rays=0).init, jax.random.PRNGKey(0))
+    assert "lidar_encoder" not in without["params"]
+    with_scan = jax.eval_shape(make_network("dsrnn", "small", 12, N, lidar_rays=rays).init, jax.random.PRNGKey(0))
+    assert "lidar_encoder" in with_scan["params"]
+
+
+def test_make_network_rejects_bad_lidar_settings():
+    with pytest.raises(ValueError, match="lidar_rays = -1 must be a whole number"):
+        make_network("hh_attn", "small", 2, 3, lidar_rays=-1)
+    with pytest.raises(ValueError, match="lidar_range = 0.0 must be > 0"):
+        make_network("hh_attn", "small", 2, 3, lidar_rays=8, lidar_range=0.0)
+
+
 def test_wrong_obs_shape_raises():
     net, params, _ = built("hh_attn", "small", 12)
     obs = random_obs(jax.random.PRNGKey(0), (B,), N, 2)
     with pytest.raises(ValueError, match="obs.humans"):
         net.apply(params, net.initialize_carry(B), obs, jnp.zeros(B, bool))
+    # a scan for a network without one, and a scan of the wrong ray count, are named
+    obs = random_obs(jax.random.PRNGKey(0), (B,), N, 12, lidar_rays=8)
+    with pytest.raises(ValueError, match=r"expects no LiDAR scan \(env.lidar_rays = 0\).*got \(3, 8\)"):
+        net.apply(params, net.initialize_carry(B), obs, jnp.zeros(B, bool))
+    scan_net = make_network("mlp", "small", obs_human_dim=12, num_humans=N, lidar_rays=16)
+    with pytest.raises(ValueError, match=r"expects a 16-ray LiDAR scan.*got \(3, 8\)"):
+        scan_net.init(jax.random.PRNGKey(0), obs)
 
 
 # --------------------------------------------------------------------------------------------------------- shapes
@@ -309,6 +354,36 @@ def test_apply_sequence_equals_stepwise_and_has_finite_gradients(name):
         np.testing.assert_allclose(values[t], value, rtol=1e-5, atol=1e-6)
     for a, b in zip(jax.tree_util.tree_leaves(carry_T), jax.tree_util.tree_leaves(carry)):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", NETWORK_NAMES)
+def test_lidar_networks_read_the_scan(name):
+    """With a scan: it changes the outputs, ranges beyond the sensor range read as the range, and the sequence form
+    (HH Attn and MLP encode all steps at once) equals the step-by-step one."""
+    rays, n = 16, 3
+    net, params, step = built(name, "small", 2, num_humans=n, lidar_rays=rays)
+    assert net.lidar_rays == rays and net.dummy_obs(2).lidar.shape == (2, rays)
+    T = 3
+    obs_seq = random_obs(jax.random.PRNGKey(20), (T, B), n, 2, lidar_rays=rays)
+    obs = jax.tree_util.tree_map(lambda x: x[0], obs_seq)
+    carry = net.initialize_carry(B)
+    base = step(params, carry, obs, jnp.zeros(B, bool))
+    assert all_finite(base)
+    nearer = obs.replace(lidar=obs.lidar.at[1, 3].set(0.4))
+    out = step(params, carry, nearer, jnp.zeros(B, bool))
+    assert not np.allclose(out[1][1], base[1][1]) and not np.allclose(out[3][1], base[3][1])
+    np.testing.assert_array_equal(out[1][0], base[1][0])  # other batch rows untouched
+    clipped = obs.replace(lidar=jnp.minimum(obs.lidar, 5.0))  # the default sensor range
+    assert bool(jnp.any(obs.lidar > 5.0))
+    assert_tree_equal(step(params, carry, clipped, jnp.zeros(B, bool)), base)
+
+    resets = jnp.zeros((T, B), bool).at[2, 1].set(True)
+    _, pi, values = jax.jit(net.apply_sequence)(params, carry, obs_seq, resets)
+    for t in range(T):
+        obs_t = jax.tree_util.tree_map(lambda x, t=t: x[t], obs_seq)
+        carry, mean, _, value = step(params, carry, obs_t, resets[t])
+        np.testing.assert_allclose(pi.mean()[t], mean, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(values[t], value, rtol=1e-5, atol=1e-6)
 
 
 # ------------------------------------------------------------------------------------------- attention algebra

@@ -105,4 +105,9 @@ def test_train_and_evaluate_runs(tmp_path):
     assert all(f"| {name} |" in table for name in ("learned", "straight", "orca"))
     html = "".join(_outputs(nb, "text/html"))
     assert "<script" in html and "data:image/png;base64" in html  # the inline animation
+    # The room built by hand: its layout and LiDAR scans were recorded, and its frame drawn.
+    text = "".join(_outputs(nb, "stream"))
+    assert "3 obstacles, LiDAR scans of shape (" in text and ", 72)" in text
+    (room,) = [c for c in nb.cells if c.cell_type == "code" and "show_rays=True" in c.source]
+    assert any("image/png" in out.get("data", {}) for out in room.outputs)
     assert (tmp_path / "run" / "config.yaml").is_file()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import re
 from typing import Any, Mapping
 
@@ -21,6 +22,7 @@ from tgrf_jax import reward as reward_lib
 from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
     ConfigError,
     _coerce,
+    _show,
     _unknown_key_error,
     apply_overrides,
     check_fields,
@@ -106,9 +108,16 @@ def _resolved_reward_class():
 
 _ResolvedReward = _resolved_reward_class()
 
-# The concrete scenarios (tgrf_jax.env.scenario, docs/scenarios.md), in the order of env.scenario_weights.
-SCENARIOS = ("circle_crossing", "square_crossing", "parallel_traffic", "perpendicular_traffic", "frontal_approach",
-             "robot_overtaking", "robot_crowding", "random")
+# The concrete scenarios (tgrf_jax.env.scenario, docs/scenarios.md): open spaces with a crowd, then layouts with
+# static obstacles. `env.scenario: mix` draws among `env.mix_scenarios` (default: the crowd scenarios).
+CROWD_SCENARIOS = ("circle_crossing", "square_crossing", "parallel_traffic", "perpendicular_traffic",
+                   "frontal_approach", "robot_overtaking", "robot_crowding", "random")
+OBSTACLE_SCENARIOS = ("corridor", "doorway", "intersection", "random_obstacles")
+SCENARIOS = CROWD_SCENARIOS + OBSTACLE_SCENARIOS
+# Obstacle slots the scenarios draw into (random_obstacles: up to 8 boxes) and their vertex capacity.
+SCENARIO_OBSTACLE_SLOTS = 8
+SCENARIO_OBSTACLE_VERTICES = 4
+MAX_LIDAR_RAYS = 1440  # a quarter of a degree: finer than any 2-D laser scanner a mobile robot carries
 
 # Allowed human counts: the reference scenario uses 20; spawning on a 6*sqrt(2) m circle cannot seat many more
 # without overlaps.
@@ -138,8 +147,17 @@ class EnvConfig:
     # --- static: shapes and code paths -------------------------------------------------------------
     num_humans: int = spec(20, low=0, high=MAX_HUMANS, doc="human slots (the capacity; see active_humans_*)")
     scenario: str = spec("circle_crossing", choices=SCENARIOS + ("mix",),
-                         doc="how starts, goals, goal changes and respawns are drawn (docs/scenarios.md); mix: a "
-                             "scenario drawn per episode by env.scenario_weights")
+                         doc="how starts, goals, goal changes, respawns and obstacles are drawn (docs/scenarios.md); "
+                             "mix: a scenario of env.mix_scenarios drawn per episode by env.scenario_weights")
+    mix_scenarios: tuple | None = spec(
+        None, doc="mix: the scenarios it draws from, in the order of env.scenario_weights (None: the crowd "
+                  f"scenarios, {', '.join(CROWD_SCENARIOS)})")
+    obstacles: tuple | None = spec(
+        None, doc="a fixed layout in every episode, beside the scenario's own obstacles: a list of polygons, each "
+                  "a list of [x, y] vertices counter-clockwise (2 vertices: a wall segment)")
+    lidar_rays: int = spec(0, low=0, high=MAX_LIDAR_RAYS,
+                           doc="rays of the robot's 360-degree 2-D LiDAR over env.sensor_range (0: no LiDAR)")
+    occlusion: bool = spec(False, doc="humans hidden behind an obstacle are not observed")
     human_policy: str = spec("orca", choices=("orca", "social_force"))
     predictor: str = spec("const_vel", choices=("none", "const_vel", "truth", "gst"))
     predictor_params: str = spec("auto", choices=("auto", "orca", "social_force"),
@@ -162,7 +180,7 @@ class EnvConfig:
     active_humans_max: float | None = traced(None, low=0, high=MAX_HUMANS,
                                              doc="most humans present in an episode (None: env.num_humans)")
     scenario_weights: tuple | None = traced(
-        None, doc=f"mix: relative frequency of each scenario, in the order {', '.join(SCENARIOS)} (None: equal)")
+        None, doc="mix: relative frequency of each scenario of env.mix_scenarios, in its order (None: equal)")
     dt: float = traced(0.25, low=MIN_DT, high=1.0, doc="seconds per step")
     time_limit: float = traced(50.0, low=0.0, high=MAX_EPISODE_SECONDS, low_inclusive=False,
                                doc="seconds; reaching it truncates")
@@ -189,6 +207,8 @@ class EnvConfig:
     )
     orca_neighbor_dist_max: float = traced(10.0, low=0.0, low_inclusive=False, doc="min = max: a fixed distance")
     orca_safety_space: float = traced(0.15, low=0.0)
+    orca_time_horizon_obst: float = traced(5.0, low=0.0, low_inclusive=False,
+                                           doc="seconds of safety from static obstacles (RVO2's timeHorizonObst)")
     sf_a: float = traced(2.0, low=0.0)
     sf_b: float = traced(1.0, low=0.0, low_inclusive=False)
     sf_ki: float = traced(1.0, low=0.0)
@@ -202,15 +222,19 @@ class EnvConfig:
             if value is not None:
                 value = _coerce(value, 0, f"env.{name}")  # a count: whole numbers only
                 object.__setattr__(self, name, value)
+        if self.mix_scenarios is not None:
+            object.__setattr__(self, "mix_scenarios", _scenario_list(self.mix_scenarios))
+        if self.obstacles is not None:
+            object.__setattr__(self, "obstacles", check_polygons(self.obstacles, "env.obstacles"))
         if self.scenario_weights is not None:
-            weights = self.scenario_weights
+            weights, names = self.scenario_weights, self.drawn_scenarios
             if isinstance(weights, (str, bytes)) or not hasattr(weights, "__iter__"):
-                raise ConfigError(f"env.scenario_weights = {weights!r} must be a list of {len(SCENARIOS)} numbers "
-                                  f"(one per scenario: {', '.join(SCENARIOS)})")
+                raise ConfigError(f"env.scenario_weights = {weights!r} must be a list of {len(names)} numbers "
+                                  f"(one per scenario of the mix: {', '.join(names)})")
             object.__setattr__(self, "scenario_weights",
                                tuple(_coerce(w, 0.0, f"env.scenario_weights[{i}]") for i, w in enumerate(weights)))
         check_fields(self, "env")
-        check_env_relations({n: self.resolved(n) for n in traced_names(EnvConfig)})
+        check_env_relations({n: self.resolved(n) for n in traced_names(EnvConfig)}, self.drawn_scenarios)
         hi = self.resolved("active_humans_max")
         if hi > self.num_humans:
             raise ConfigError(f"env.active_humans_max = {hi} must be <= env.num_humans = {self.num_humans} "
@@ -230,8 +254,26 @@ class EnvConfig:
         if value is None and name in ("active_humans_min", "active_humans_max"):
             return self.num_humans
         if value is None and name == "scenario_weights":
-            return (1.0,) * len(SCENARIOS)
+            return (1.0,) * len(self.drawn_scenarios)
         return value
+
+    @property
+    def drawn_scenarios(self) -> tuple[str, ...]:
+        """The scenarios this env plays: env.scenario, or the mix's (the order of env.scenario_weights)."""
+        if self.scenario != "mix":
+            return (self.scenario,)
+        return CROWD_SCENARIOS if self.mix_scenarios is None else self.mix_scenarios
+
+    @property
+    def obstacle_slots(self) -> int:
+        """Static obstacle capacity: the scenarios' slots (when one of them draws obstacles) plus the fixed layout."""
+        drawn = SCENARIO_OBSTACLE_SLOTS if set(self.drawn_scenarios) & set(OBSTACLE_SCENARIOS) else 0
+        return drawn + len(self.obstacles or ())
+
+    @property
+    def obstacle_vertices(self) -> int:
+        """Static vertex capacity of an obstacle slot."""
+        return max([SCENARIO_OBSTACLE_VERTICES] + [len(p) for p in self.obstacles or ()])
 
     @property
     def max_neighbors(self) -> int:
@@ -257,9 +299,102 @@ class EnvConfig:
         return cls.from_dict(data.get("env", data))
 
 
-def check_env_relations(values: Mapping[str, Any]) -> None:
+def _scenario_list(names) -> tuple[str, ...]:
+    """env.mix_scenarios as a tuple of distinct known scenario names."""
+    allowed = f"allowed: a non-empty list of distinct names among {', '.join(SCENARIOS)}"
+    if isinstance(names, (str, bytes)) or not hasattr(names, "__iter__"):
+        raise ConfigError(f"env.mix_scenarios = {names!r} must be a list of scenario names; {allowed}")
+    names = tuple(names)
+    for i, name in enumerate(names):
+        if name not in SCENARIOS:
+            raise ConfigError(f"env.mix_scenarios[{i}] = {name!r} is not a scenario; {allowed}")
+    if not names or len(set(names)) != len(names):
+        raise ConfigError(f"env.mix_scenarios = {list(names)!r} is empty or names a scenario twice; {allowed}")
+    return names
+
+
+def _describe(polygon) -> str:
+    text = repr(polygon)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _segments_intersect_np(a, b, c, d) -> np.ndarray:
+    """Whether closed segments a-b and c-d intersect (touching included); arrays of shape (..., 2), float64."""
+
+    def orient(p, q, r):
+        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
+                       - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+
+    def on_segment(p, q, r):  # r collinear with p-q: within its bounding box
+        return ((np.minimum(p[..., 0], q[..., 0]) <= r[..., 0]) & (r[..., 0] <= np.maximum(p[..., 0], q[..., 0]))
+                & (np.minimum(p[..., 1], q[..., 1]) <= r[..., 1]) & (r[..., 1] <= np.maximum(p[..., 1], q[..., 1])))
+
+    o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
+    proper = (o1 * o2 < 0) & (o3 * o4 < 0)
+    touch = (((o1 == 0) & on_segment(a, b, c)) | ((o2 == 0) & on_segment(a, b, d))
+             | ((o3 == 0) & on_segment(c, d, a)) | ((o4 == 0) & on_segment(c, d, b)))
+    return proper | touch
+
+
+def check_polygons(polygons, field: str) -> tuple:
+    """Validate obstacle polygons on the host; returns them as tuples of (x, y) float pairs (hashable, as configs are).
+
+    Raises ConfigError naming `field`, the polygon's index and what is allowed for: anything but a list of
+    polygons, a polygon with fewer than 2 vertices, vertices that are not pairs of finite numbers, a clockwise
+    polygon, zero-length edges (repeated consecutive vertices, the last and first included), a polygon of 3+
+    vertices that encloses no area, and a self-intersecting polygon.
+    """
+    if polygons is None or isinstance(polygons, (str, bytes, dict)) or not hasattr(polygons, "__len__"):
+        raise ConfigError(f"{field} = {_describe(polygons)} must be a list of polygons, each a list of [x, y] "
+                          "vertices")
+    checked = []
+    for i, polygon in enumerate(polygons):
+        where = f"{field}[{i}] = {_describe(polygon)}"
+        # Checked coordinate by coordinate: numpy would quietly parse strings such as "1.5" as numbers.
+        try:
+            rows = [list(vertex) for vertex in polygon]
+        except TypeError:
+            rows = None
+        if rows is None or isinstance(polygon, (str, bytes, dict)) or not all(
+            len(r) == 2 and all(isinstance(c, numbers.Real) and not isinstance(c, bool) for c in r) for r in rows
+        ):
+            raise ConfigError(f"{where} must be a list of [x, y] vertices, each a pair of numbers")
+        v = np.array(rows, dtype=np.float64).reshape(-1, 2)
+        n = v.shape[0]
+        if n < 2:
+            raise ConfigError(f"{where} has {n} vertices; allowed: 2 (a wall segment) or more (a polygon)")
+        if not np.all(np.isfinite(v)):
+            raise ConfigError(f"{where} has non-finite coordinates; every coordinate must be a finite number")
+        nxt = np.roll(v, -1, axis=0)
+        edge_len = np.hypot(*(nxt - v).T)
+        if np.any(edge_len[: n if n >= 3 else 1] == 0.0):
+            raise ConfigError(f"{where} has a zero-length edge (repeated consecutive vertices, the last and the "
+                              "first included); give each vertex once")
+        if n >= 3:
+            # Every pair of edges must meet only where they share a vertex. Adjacent edges share one; they
+            # intersect elsewhere only by folding back over each other, caught by the collinear test below.
+            j = np.arange(n)
+            hit = _segments_intersect_np(v[:, None], nxt[:, None], v[None, :], nxt[None, :])
+            adjacent = (j[:, None] == j[None, :]) | ((j[:, None] + 1) % n == j[None, :]) \
+                | ((j[None, :] + 1) % n == j[:, None])
+            e, f = nxt - v, np.roll(nxt - v, -1, axis=0)  # edge k and edge k + 1, which share vertex k + 1
+            folds = (e[:, 0] * f[:, 1] - e[:, 1] * f[:, 0] == 0) & (e[:, 0] * f[:, 0] + e[:, 1] * f[:, 1] < 0)
+            if np.any(hit & ~adjacent) or np.any(folds):
+                raise ConfigError(f"{where} intersects itself; allowed: simple polygons (edges meet only at "
+                                  "shared vertices)")
+            area = 0.5 * np.sum(v[:, 0] * nxt[:, 1] - nxt[:, 0] * v[:, 1])
+            if area < 0:
+                raise ConfigError(f"{where} is clockwise (signed area {area:g}); give the vertices "
+                                  "counter-clockwise (interior on the left of each edge, as RVO2)")
+            if area == 0:
+                raise ConfigError(f"{where} encloses no area (collinear vertices); use 2 vertices for a wall")
+        checked.append(tuple((float(x), float(y)) for x, y in v))
+    return tuple(checked)
+
+
+def check_env_relations(values: Mapping[str, Any], drawn_scenarios=None) -> None:
     """The constraints between numeric env fields, on a config's values or on concrete `EnvParams` leaves (arrays:
-    every element)."""
+    every element). `drawn_scenarios`: the env's scenarios (the length of scenario_weights; None: not checked)."""
     for lo, hi in (("human_radius_min", "human_radius_max"), ("human_v_pref_min", "human_v_pref_max"),
                    ("orca_neighbor_dist_min", "orca_neighbor_dist_max"),
                    ("active_humans_min", "active_humans_max")):
@@ -275,14 +410,18 @@ def check_env_relations(values: Mapping[str, Any]) -> None:
     hit = first_where(np.asarray(values["time_limit"]) < np.asarray(values["dt"]), values["time_limit"], values["dt"])
     if hit:
         raise ConfigError(f"env.time_limit = {hit[0]!s} must be >= env.dt = {hit[1]!s}")
-    check_scenario_weights(values["scenario_weights"])
+    check_scenario_weights(values["scenario_weights"], drawn_scenarios)
 
 
-def check_scenario_weights(weights) -> None:
-    """One non-negative, finite weight per scenario (the last axis; leading axes: a batch), not all zero."""
+def check_scenario_weights(weights, drawn_scenarios=None) -> None:
+    """One non-negative, finite weight per scenario of the mix (the last axis; leading axes: a batch), not all
+    zero. `drawn_scenarios` None: any length."""
     w = np.asarray(weights, np.float64)
-    allowed = f"allowed: {len(SCENARIOS)} non-negative numbers, not all zero, one per scenario ({', '.join(SCENARIOS)})"
-    if w.ndim == 0 or w.shape[-1] != len(SCENARIOS):
+    names = drawn_scenarios or ()
+    count = len(names) if drawn_scenarios is not None else (w.shape[-1] if w.ndim else 1)
+    allowed = (f"allowed: {count} non-negative numbers, not all zero, one per scenario of the mix"
+               + (f" ({', '.join(names)})" if names else ""))
+    if w.ndim == 0 or w.shape[-1] != count:
         raise ConfigError(f"env.scenario_weights has {1 if w.ndim == 0 else w.shape[-1]} value(s); {allowed}")
     if not np.all(np.isfinite(w)) or np.any(w < 0):
         raise ConfigError(f"env.scenario_weights = {np.round(w, 6).tolist()} has a negative or non-finite weight; "
@@ -467,8 +606,12 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         data = dataclasses.asdict(self)
-        if data["env"]["scenario_weights"] is not None:  # a list, as YAML writes and reads it
-            data["env"]["scenario_weights"] = list(data["env"]["scenario_weights"])
+        env = data["env"]
+        for name in ("scenario_weights", "mix_scenarios"):  # lists, as YAML writes and reads them
+            if env[name] is not None:
+                env[name] = list(env[name])
+        if env["obstacles"] is not None:
+            env["obstacles"] = [[list(v) for v in polygon] for polygon in env["obstacles"]]
         return data
 
     def to_yaml(self) -> str:

@@ -24,7 +24,7 @@ import numpy as np
 from flax import struct
 
 from tgrf_jax.config import MAX_EPISODES, TrainConfig
-from tgrf_jax.env import COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams
+from tgrf_jax.env import COLLISION, OBSTACLE_COLLISION, SUCCESS, TIMEOUT, CrowdNavEnv, EnvParams
 from tgrf_jax.policies import LearnedPolicy, Policy, baseline, make_network_for
 
 
@@ -53,6 +53,8 @@ class EpisodeStats:
     min_ttc: jnp.ndarray  # smallest time-to-collision at constant velocities (inf: never on a collision course)
     stall_steps: jnp.ndarray  # steps slower than STALL_SPEED
     num_humans: jnp.ndarray  # active humans of the episode
+    min_dist_obstacle: jnp.ndarray  # smallest edge distance to a static obstacle (inf without obstacles)
+    obstacles_dropped: jnp.ndarray  # obstacle slots removed at reset for lying on the robot's start or goal
 
 
 # Edge-to-edge distance below which a human is inside the robot's personal space (docs/metrics.md).
@@ -91,6 +93,7 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
         start_goal_dist=jnp.linalg.norm(state.robot.goal - state.robot.pos, axis=-1), min_dist=inf,
         personal_steps=izeros, speed_sum=zeros, speed_max=zeros, accel_sum=zeros, jerk_sum=zeros, turn_sum=zeros,
         min_ttc=inf, stall_steps=izeros, num_humans=jnp.sum(state.humans.active, -1, dtype=jnp.int32),
+        min_dist_obstacle=inf, obstacles_dropped=state.obstacles_dropped,
     )
     alive = jnp.ones(n_episodes, bool)
     carry = policy.initialize_carry(n_episodes)
@@ -145,6 +148,8 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
             min_ttc=jnp.minimum(stats.min_ttc, jnp.where(alive, ttc, jnp.inf)),
             stall_steps=add(stats.stall_steps, (speed < STALL_SPEED).astype(jnp.int32)),
             num_humans=stats.num_humans,
+            min_dist_obstacle=jnp.minimum(stats.min_dist_obstacle, jnp.where(alive, info.obstacle_dist, jnp.inf)),
+            obstacles_dropped=stats.obstacles_dropped,
         )
         return t + 1, key, obs, state, carry, alive & ~done, stats, (vel, acc)
 
@@ -175,7 +180,7 @@ class EvalResult:
 
     n_episodes: int
     success_rate: float
-    collision_rate: float
+    collision_rate: float  # episodes ended by a collision, with a human or a static obstacle
     timeout_rate: float
     nav_time: float  # mean time of successful episodes
     path_length: float  # mean robot path length of successful episodes
@@ -186,7 +191,10 @@ class EvalResult:
     mean_return: float
     # The field's wider set (docs/metrics.md); NaN where undefined (no episode to average) or not recorded.
     spl: float = math.nan  # success weighted by (straight-line distance / path length)
-    collision_human_rate: float = math.nan  # episodes ended by hitting a human (the only obstacles so far)
+    collision_human_rate: float = math.nan  # episodes ended by hitting a human
+    collision_obstacle_rate: float = math.nan  # episodes ended by hitting a static obstacle
+    min_dist_obstacle: float = math.nan  # mean over episodes with obstacles of the smallest edge distance to one (m)
+    layout_fallback_rate: float = math.nan  # episodes whose drawn layout lost an obstacle on the robot's start/goal
     min_dist_human: float = math.nan  # mean over episodes of the smallest edge distance to a human (m)
     personal_space_compliance: float = math.nan  # % of steps with nobody inside PERSONAL_SPACE
     speed_mean: float = math.nan  # m/s
@@ -226,7 +234,7 @@ def summarize(stats: EpisodeStats) -> EvalResult:
     return EvalResult(
         n_episodes=n,
         success_rate=mean(success.astype(float)),
-        collision_rate=mean((s.outcome == COLLISION).astype(float)),
+        collision_rate=mean(((s.outcome == COLLISION) | (s.outcome == OBSTACLE_COLLISION)).astype(float)),
         timeout_rate=mean((s.outcome == TIMEOUT).astype(float)),
         nav_time=mean(s.time, success),
         path_length=mean(s.path_length, success),
@@ -237,6 +245,9 @@ def summarize(stats: EpisodeStats) -> EvalResult:
         mean_return=mean(s.ret),
         spl=mean(np.where(success, shortest / np.maximum(np.maximum(s.path_length, shortest), 1e-9), 0.0)),
         collision_human_rate=mean((s.outcome == COLLISION).astype(float)),
+        collision_obstacle_rate=mean((s.outcome == OBSTACLE_COLLISION).astype(float)),
+        min_dist_obstacle=finite_mean(s.min_dist_obstacle),
+        layout_fallback_rate=mean((s.obstacles_dropped > 0).astype(float)),
         min_dist_human=finite_mean(s.min_dist),
         personal_space_compliance=100.0 * (1.0 - mean(s.personal_steps / steps)),
         speed_mean=mean(s.speed_sum / steps),
@@ -302,6 +313,9 @@ METRIC_LABELS = (
 EXTRA_METRIC_LABELS = (
     ("spl", "SPL", "{:.3f}"),
     ("collision_human_rate", "hit human", "{:.1%}"),
+    ("collision_obstacle_rate", "hit obstacle", "{:.1%}"),
+    ("min_dist_obstacle", "min dist obstacle (m)", "{:.3f}"),
+    ("layout_fallback_rate", "layout fallbacks", "{:.1%}"),
     ("min_dist_human", "min dist (m)", "{:.3f}"),
     ("personal_space_compliance", "PS compliance (%)", "{:.1f}"),
     ("speed_mean", "speed (m/s)", "{:.2f}"),

@@ -8,10 +8,13 @@ pip install 'tgrf-jax[gym]').
   episode's last observation and info for the environments flagged in `infos["_final_obs"]`.
 * `CrowdNavGymEnv(config, reward)`: one `gymnasium.Env` (`step` never resets; call `reset` after an end).
 
-Observations are flat float32 vectors (`Box`), the inputs the shipped networks read, in this order:
+Observations are flat float32 vectors (`Box`), the inputs the networks read, in this order:
 robot_node (7: px, py, radius, gx, gy, v_max, heading), robot_vel (2), humans (N x D, rows sorted nearest first,
-zeros where nobody is in range), human_mask (N: 1.0 for a human in range). `obs_layout(config)` gives the
-slices. Actions: holonomic (vx, vy) in m/s (the env scales the norm down to v_max), unicycle (dv, dtheta) within
+zeros where nobody is in range), human_mask (N: 1.0 for a human in range), and with a LiDAR (env.lidar_rays = R
+> 0) lidar (R: ranges in metres within [0, sensor_range], ray k at heading + 2 pi k / R counter-clockwise, the
+robot's body frame, as `Obs.lidar`; absent when R = 0). `obs_layout(env)` gives the slices. The observation
+space bounds the scan by [0, sensor_range] and everything else by +-OBS_BOUND. Static obstacles (`Obs.obstacles`,
+the map) are not part of the observation. Actions: holonomic (vx, vy) in m/s (the env scales the norm down to v_max), unicycle (dv, dtheta) within
 the per-step limits. `terminated` is a collision or the goal, `truncated` the time limit.
 """
 
@@ -39,17 +42,22 @@ OBS_BOUND = 1e6
 
 
 def obs_layout(env: CrowdNavEnv) -> dict[str, slice]:
-    n, d = env.num_humans, env.obs_human_dim
-    cuts = np.cumsum([0, 7, 2, n * d, n])
-    return {name: slice(int(a), int(b)) for name, a, b in
-            zip(("robot_node", "robot_vel", "humans", "human_mask"), cuts[:-1], cuts[1:])}
+    """Slices of the flat observation: robot_node, robot_vel, humans, human_mask, and lidar when R > 0."""
+    n, d, r = env.num_humans, env.obs_human_dim, env.config.lidar_rays
+    names, sizes = ["robot_node", "robot_vel", "humans", "human_mask"], [7, 2, n * d, n]
+    if r:
+        names, sizes = names + ["lidar"], sizes + [r]
+    cuts = np.cumsum([0] + sizes)
+    return {name: slice(int(a), int(b)) for name, a, b in zip(names, cuts[:-1], cuts[1:])}
 
 
 def _flat(obs) -> jnp.ndarray:
     """Observation pytree (any leading batch shape) -> flat float32 rows."""
     lead = obs.robot_node.shape[:-1]
-    return jnp.concatenate([obs.robot_node, obs.robot_vel, obs.humans.reshape(lead + (-1,)),
-                            obs.human_mask.astype(jnp.float32)], axis=-1).astype(jnp.float32)
+    parts = [obs.robot_node, obs.robot_vel, obs.humans.reshape(lead + (-1,)), obs.human_mask.astype(jnp.float32)]
+    if obs.lidar.shape[-1]:
+        parts.append(obs.lidar)
+    return jnp.concatenate(parts, axis=-1).astype(jnp.float32)
 
 
 def _info(info) -> dict[str, Any]:
@@ -58,8 +66,15 @@ def _info(info) -> dict[str, Any]:
 
 
 def _spaces(env: CrowdNavEnv, params):
-    dim = obs_layout(env)["human_mask"].stop
-    obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (dim,), np.float32)
+    layout = obs_layout(env)
+    dim = max(s.stop for s in layout.values())
+    if "lidar" not in layout:
+        obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (dim,), np.float32)
+    else:
+        low, high = np.full(dim, -OBS_BOUND, np.float32), np.full(dim, OBS_BOUND, np.float32)
+        low[layout["lidar"]] = 0.0
+        high[layout["lidar"]] = np.float32(params.sensor_range)  # the scan's largest value, exactly
+        obs_space = spaces.Box(low, high, (dim,), np.float32)
     if env.config.kinematics == "holonomic":
         v = float(params.robot_v_max)
         act_space = spaces.Box(-v, v, (2,), np.float32)

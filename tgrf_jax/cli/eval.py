@@ -124,7 +124,9 @@ def _restore(sc, step, resume_hint: str):
 
 
 def _suite(args, sc) -> int:
-    from tgrf_jax.cli.suite import run_suite
+    import dataclasses
+
+    from tgrf_jax.cli.suite import SUITE_SIZES, run_suite
     from tgrf_jax.policies import baseline, make_network_for
     from tgrf_jax.policies.learned import LearnedPolicy
 
@@ -136,6 +138,10 @@ def _suite(args, sc) -> int:
             if state is None:
                 return status
             params = state.params
+        # Attention over the humans (HH Attn, DS-RNN) has no parameter that depends on the number of human
+        # slots, so the same weights play any crowd size; the MLP reads a fixed-size input.
+        if config.network.name != "mlp":
+            config = dataclasses.replace(config, env=dataclasses.replace(config.env, num_humans=max(SUITE_SIZES)))
         policies["learned"] = LearnedPolicy(make_network_for(config), params)
         capacity = config.env.num_humans
     else:

@@ -61,9 +61,10 @@ def main(argv: list[str] | None = None) -> int:
         return checkpoint_error("tgrf-export", e, f"tgrf-export {args.run_dir} --out {args.out} --step")
     except ConfigError as e:
         return error("tgrf-export", e)
-    net = source.config.network
+    net, rays = source.config.network, source.config.env.lidar_rays
+    lidar = f", {rays}-ray LiDAR (extra input 'lidar')" if rays else ""
     print(f"exporting {args.run_dir or args.pretrained} ({net.name}/{net.size}, {source.config.env.kinematics}, "
-          f"predictor {source.config.env.predictor}) to {args.out}", flush=True)
+          f"predictor {source.config.env.predictor}{lidar}) to {args.out}", flush=True)
     t0 = time.perf_counter()
     try:
         out = export(source, args.out, formats)

@@ -46,6 +46,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=8.0, help="GIF/MP4 frames per second (default 8 = 2x real time)")
     p.add_argument("--dpi", type=int, default=90, help="frame resolution (default 90: 648 x 720 pixels)")
     p.add_argument("--stride", type=int, default=1, help="draw every STRIDE-th step (default 1)")
+    p.add_argument("--rays", action="store_true",
+                   help="draw the robot's LiDAR rays and their hits (the env needs a LiDAR: env.lidar_rays > 0)")
     p.add_argument("--no-frames", action="store_true", help="skip the PNG frames")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF")
     p.add_argument("--no-mp4", action="store_true", help="skip the MP4 even when ffmpeg is available")
@@ -83,6 +85,9 @@ def check(args):
     sc = scenario(args.config, args.overrides, "tgrf-render", args.pretrained)
     if args.step is not None and sc.run_dir is None:
         raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
+    if args.rays and sc.env.lidar_rays == 0:
+        raise ConfigError("--rays draws the robot's LiDAR rays, but this env has no LiDAR (env.lidar_rays = 0); "
+                          "give it one, e.g. --set env.lidar_rays=72")
     return sc
 
 
@@ -136,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{env} on {jax.devices()[0].platform}; {args.episodes} episode(s) per policy, seed {args.seed}", flush=True)
     summary = {"env": repr(env), "seed": args.seed, "source": args.config, "episodes": []}
     n_files = 0
-    per_batch = episodes_per_batch(env.default_params)
+    per_batch = episodes_per_batch(env.default_params, env.config.lidar_rays)
     batches = -(-args.episodes // per_batch)
     for label, slug, policy in policies:
         for b in range(batches):
@@ -162,7 +167,7 @@ def _save(episodes, out: pathlib.Path, slug: str, args, mp4, summary: dict) -> i
     for ep in episodes:
         t0 = time.perf_counter()
         paths = save_episode(ep, out / slug, frames=not args.no_frames, gif=not args.no_gif, mp4=mp4,
-                             fps=args.fps, dpi=args.dpi, stride=args.stride)
+                             fps=args.fps, dpi=args.dpi, stride=args.stride, show_rays=args.rays)
         n_files += len(paths["frames"]) + sum(paths[k] is not None for k in ("gif", "mp4"))
         row = dict(ep.summary(), policy=slug, gif=paths["gif"] and str(paths["gif"]),
                    mp4=paths["mp4"] and str(paths["mp4"]), frames=len(paths["frames"]),

@@ -1,9 +1,10 @@
 """`tgrf-eval --suite DIR`: a policy on every scenario x crowd size, with fixed test seeds, as one table.
 
-Every row plays the same compiled evaluation: the env is `scenario: mix` with one-hot `scenario_weights` (which
-plays exactly that scenario's episodes) and the crowd size set by `active_humans_min = active_humans_max`, all
-traced params. The capacity is the largest size for baselines; a trained policy keeps the capacity it was trained
-with (its network reads observations of that shape), and larger crowds are left out of its table.
+Every row plays the same compiled evaluation: the env is `scenario: mix` over every scenario (the crowd scenarios
+and those with static obstacles) with one-hot `scenario_weights` (which plays exactly that scenario's episodes)
+and the crowd size set by `active_humans_min = active_humans_max`, all traced params. The capacity is the largest
+size; a trained MLP keeps the capacity it was trained with (its input has that shape), and larger crowds are left
+out of its table, while attention networks (HH Attn, DS-RNN) play every size with the same weights.
 """
 
 from __future__ import annotations
@@ -27,8 +28,10 @@ TABLE_COLUMNS = (
 
 def suite_env_config(env_config, capacity: int):
     """The suite's env: every scenario selectable by weights, `capacity` human slots."""
-    return dataclasses.replace(env_config, scenario="mix", num_humans=capacity, active_humans_min=None,
-                               active_humans_max=None, scenario_weights=None)
+    from tgrf_jax.config import SCENARIOS
+
+    return dataclasses.replace(env_config, scenario="mix", mix_scenarios=SCENARIOS, num_humans=capacity,
+                               active_humans_min=None, active_humans_max=None, scenario_weights=None)
 
 
 def run_suite(config, policies: dict, out_dir, *, episodes: int, seed: int, sizes=SUITE_SIZES, capacity=None,

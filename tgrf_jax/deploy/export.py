@@ -17,7 +17,6 @@ import numpy as np
 
 from tgrf_jax.config import ConfigError
 from tgrf_jax.deploy.policy import (
-    INPUT_NAMES,
     INTERFACE_FILE,
     ONNX_FILE,
     OUTPUT_NAMES,
@@ -52,6 +51,17 @@ def interface(step: PolicyStep, source: PolicySource, formats) -> dict:
     n, d, k = step.num_humans, step.obs_human_dim, env.pred_horizon if env.uses_predictions else 0
     holonomic = env.kinematics == "holonomic"
     human_cols = ["x_rel", "y_rel"] + [f"{axis}_pred{j}_rel" for j in range(1, k + 1) for axis in ("x", "y")]
+    rays = step.lidar_rays
+    lidar = [] if not rays else [
+        {"name": "lidar", "shape": [rays], "dtype": "float32",
+         "frame": "robot body: ray 0 along robot_node's heading" + (
+             " (pi/2 for this holonomic policy: ray 0 along world +y; rotate the scan of a robot facing elsewhere "
+             "by its heading - pi/2, as tgrf_jax.deploy.Navigator does)" if holonomic else ""),
+         "units": "m", "layout": f"ray k at angle heading + 2 pi k / {rays} rad, counter-clockwise, k = 0 .. {rays - 1}",
+         "meaning": f"2-D LiDAR ranges to the first return (obstacles and people), 360 degrees in {rays} rays; "
+                    f"values above the sensor range ({env.sensor_range} m) are read as it (clip them), and a ray with "
+                    "no return is the sensor range (NaN is read as no return)",
+         "values": {"rays": rays, "angle_step_rad": 2 * np.pi / rays, "max_range_m": env.sensor_range}}]
     action = ({"name": "action", "shape": [2], "dtype": "float32", "frame": "world", "units": "m/s",
                "layout": ["vx", "vy"],
                "meaning": f"desired velocity; the robot drives at it after scaling its norm down to at most "
@@ -94,6 +104,7 @@ def interface(step: PolicyStep, source: PolicySource, formats) -> dict:
                         "are ignored"},
             {"name": "human_mask", "shape": [n], "dtype": "float32", "units": "1",
              "meaning": "1.0 for a row holding a human in range, 0.0 for a padding row (ones first)"},
+            *lidar,
             {"name": "state", "shape": [step.state_size], "dtype": "float32", "units": "none",
              "meaning": "the network's recurrent state: zeros at the start of every trip, then the previous "
                         "call's new_state"},
@@ -104,7 +115,7 @@ def interface(step: PolicyStep, source: PolicySource, formats) -> dict:
              "meaning": "recurrent state to pass as `state` on the next call"},
         ],
         "robot": {"kinematics": env.kinematics, "radius_m": env.robot_radius, "v_max_m_s": env.robot_v_max,
-                  "sensor_range_m": env.sensor_range,
+                  "sensor_range_m": env.sensor_range, "lidar_rays": rays,
                   **({} if holonomic else {"dv_min_m_s": env.unicycle_dv_min, "dv_max_m_s": env.unicycle_dv_max,
                                            "dtheta_max_rad": env.unicycle_dtheta_max})},
         "predictions": {"predictor": env.predictor, "horizon_steps": k,
@@ -114,7 +125,7 @@ def interface(step: PolicyStep, source: PolicySource, formats) -> dict:
                                  "ground-truth futures exist only in simulation" if env.predictor == "truth"
                                  else "")},
         "network": {"name": source.config.network.name, "size": source.config.network.size,
-                    "frame": source.config.network.frame, "num_humans": n, "obs_human_dim": d},
+                    "frame": source.config.network.frame, "num_humans": n, "obs_human_dim": d, "lidar_rays": rays},
         "source": source.origin,
     }
 
@@ -133,7 +144,7 @@ def _onnx_bytes(step: PolicyStep) -> bytes:
     def primitives(*args):
         return tuple(jaxpr_as_fun(closed)(*args))
 
-    model = to_onnx(primitives, step.input_shapes(), input_names=list(INPUT_NAMES), output_names=list(OUTPUT_NAMES),
+    model = to_onnx(primitives, step.input_shapes(), input_names=list(step.input_names), output_names=list(OUTPUT_NAMES),
                     model_name="tgrf_policy_step", opset=ONNX_OPSET)
     return model.SerializeToString()
 

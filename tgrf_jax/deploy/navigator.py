@@ -7,6 +7,15 @@ predictions relative to the robot, padding rows zero and masked. Predictions are
 the env makes them from its humans: constant velocity from each detection's velocity, or the learned GST model
 from a 5-frame history kept per tracked human (which is why gst needs track ids). Ground-truth predictions need
 the crowd's true future and are refused.
+
+A policy trained with a 2-D LiDAR (env.lidar_rays = R > 0) also needs the robot's scan each decision: R ranges in
+metres, ray 0 along the robot's heading, counter-clockwise (the body frame of a 2-D laser scanner), as the env's
+`Obs.lidar`. Ranges above the sensor range are clipped to it, non-finite ones (a driver's "no return" or a fault)
+become the sensor range and are counted like dropped detections. The env keeps a holonomic robot's heading at
+pi/2, so for a holonomic policy the scan is turned from the robot's real heading to that one (a circular shift
+with linear interpolation between rays, `tgrf_jax.policies.nets.frames.rotate_scan`'s rule; exact when the
+headings differ by whole rays). A policy without a LiDAR refuses a scan rather than ignore it: a caller passing
+one expects it to be used.
 """
 
 from __future__ import annotations
@@ -64,6 +73,7 @@ class Decision:
     num_dropped: int  # of those, dropped for a non-finite number
     num_in_range: int  # within the sensor range
     num_used: int  # rows fed to the network (the nearest, at most its capacity)
+    num_lidar_invalid: int = 0  # LiDAR rays with a non-finite range, read as the sensor range (LiDAR policies)
 
 
 def _vector(value, n: int, name: str, what: str) -> np.ndarray:
@@ -76,6 +86,22 @@ def _vector(value, n: int, name: str, what: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be finite ({what}); got {arr.tolist()}")
     return arr
+
+
+def rotate_scan(scan: np.ndarray, angle: float) -> np.ndarray:
+    """NumPy twin of `tgrf_jax.policies.nets.frames.rotate_scan` for one scan: the scan (R,) re-expressed in a
+    frame turned by `angle` rad counter-clockwise (out[j] = scan at ray j + angle R / (2 pi), linearly
+    interpolated between neighbouring rays, indices modulo R)."""
+    r = scan.shape[0]
+    shift = float(np.mod(angle * r / (2.0 * math.pi), r))
+    whole = round(shift)
+    if abs(shift - whole) < 1e-3:  # as frames.rotate_scan: whole ray steps shift exactly
+        shift = float(whole)
+    base = math.floor(shift)
+    frac = np.float32(shift - base)
+    idx = (np.arange(r) + base) % r
+    lo, hi = scan[idx], scan[(idx + 1) % r]
+    return (lo + frac * (hi - lo)).astype(np.float32)
 
 
 def _robot_state(state) -> np.ndarray:
@@ -202,6 +228,7 @@ class Navigator:
         self.kinematics = env.kinematics
         self.dt = float(env.dt)
         self.capacity = env.num_humans
+        self.lidar_rays = env.lidar_rays
         self.runtime_name = runtime
         self._step_info = PolicyStep(self.source.config, self.source.params)
         self._run = make_runtime(self.source, runtime, threads)
@@ -213,11 +240,13 @@ class Navigator:
         self.default_human_radius = float(radius)
         self._gst = _GstTracker(env, self.capacity) if env.predictor == "gst" else None
         self.dropped_total = 0
+        self.lidar_invalid_total = 0
         self.reset()
 
     def __repr__(self):
+        lidar = f", lidar_rays={self.lidar_rays}" if self.lidar_rays else ""
         return (f"Navigator({self.source.config.network.name}/{self.source.config.network.size}, "
-                f"{self.kinematics}, predictor={self.env_config.predictor!r}, runtime={self.runtime_name!r})")
+                f"{self.kinematics}, predictor={self.env_config.predictor!r}{lidar}, runtime={self.runtime_name!r})")
 
     def reset(self) -> None:
         """Start a trip: zero recurrent state, empty prediction history."""
@@ -280,12 +309,45 @@ class Navigator:
             ids = [ids[i] for i in keep] if ids is not None else None
         return pos, vel, radius, ids, detected, dropped
 
+    def _scan(self, lidar, heading: float):
+        """The policy's `lidar` input from a robot's scan: (ranges (R,) float32, rays that were not finite)."""
+        r, max_range = self.lidar_rays, float(self.env_config.sensor_range)
+        frame = ("metres, ray 0 along the robot's heading, counter-clockwise (the scanner's body frame), "
+                 f"ray k at heading + 2 pi k / {r}")
+        if lidar is None:
+            raise ValueError(f"lidar: this policy reads a {r}-ray 2-D LiDAR scan; pass lidar = {r} ranges in "
+                             f"{frame}")
+        try:
+            scan = np.asarray(lidar, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"lidar must be {r} numbers (ranges in {frame}); got {lidar!r}") from None
+        if scan.ndim != 1 or scan.shape[0] != r:
+            got = f"{scan.shape[0]} rays" if scan.ndim == 1 else f"shape {scan.shape}"
+            raise ValueError(f"lidar has {got} but this policy was trained on {r} rays (ranges in {frame}); "
+                             f"resample the scan to {r} rays")
+        finite = np.isfinite(scan)
+        bad = np.flatnonzero(finite & (scan < 0))
+        if len(bad):
+            raise ValueError(f"lidar[{bad[0]}] = {scan[bad[0]]}: a range must be >= 0 m")
+        invalid = int(r - finite.sum())
+        scan = np.minimum(np.where(finite, scan, max_range), max_range).astype(np.float32)
+        if self.kinematics == "holonomic":
+            # the policy's body frame is the env's: heading pi/2 (see the module docstring)
+            scan = rotate_scan(scan, float(HOLONOMIC_HEADING) - heading)
+        return scan, invalid
+
     # ------------------------------------------------------------------------------------------ observation
 
-    def observation(self, robot_state, goal, humans, *, ids=None):
-        """The network's inputs (robot_node, robot_vel, humans, human_mask) for this situation, plus the counts
-        (detected, dropped, in range, used). Advances the GST history: call it once per decision, or use `act`."""
+    def observation(self, robot_state, goal, humans, lidar=None, *, ids=None):
+        """The network's inputs (robot_node, robot_vel, humans, human_mask[, lidar]) for this situation, plus the
+        counts (detected, dropped, in range, used[, LiDAR rays not finite]); the bracketed parts exactly for a policy
+        with a LiDAR. Advances the GST history: call it once per decision, or use `act`."""
         rs = _robot_state(robot_state)
+        if self.lidar_rays:
+            scan, invalid = self._scan(lidar, float(rs[2]))
+        elif lidar is not None:
+            raise ValueError("lidar: this policy has no scan input (it was trained with env.lidar_rays = 0); turn "
+                             "the scan into human detections (positions and velocities) and pass those as `humans`")
         goal = _vector(goal, 2, "goal", "gx, gy in m, world frame")
         env = self.env_config
         v_max = np.float32(env.robot_v_max)
@@ -321,7 +383,10 @@ class Navigator:
         heading = f32(rs[2]) if self.kinematics == "unicycle" else HOLONOMIC_HEADING
         robot_node = np.array([robot_pos[0], robot_pos[1], env.robot_radius, goal[0], goal[1], v_max, heading], f32)
         robot_vel = rs[3:5].astype(f32)
-        return (robot_node, robot_vel, rows, mask), (detected, dropped, len(in_range), len(used))
+        counts = (detected, dropped, len(in_range), len(used))
+        if self.lidar_rays:
+            return (robot_node, robot_vel, rows, mask, scan), counts + (invalid,)
+        return (robot_node, robot_vel, rows, mask), counts
 
     # ------------------------------------------------------------------------------------------ decision
 
@@ -330,20 +395,25 @@ class Navigator:
         (x, y, heading, vx, vy), world frame, m / rad / m/s. goal: (gx, gy) m. humans: Detections, mappings with
         'position', 'velocity' and optional 'radius' / 'id', or an (M, 4|5) array [x, y, vx, vy(, radius)];
         detections with a non-finite number are dropped and counted. ids: track ids (gst needs them).
-        lidar: the shipped policies read no scan (detections are their only view of the crowd), so only None
-        is accepted."""
-        if lidar is not None:
-            raise ValueError("lidar: this policy has no scan input; turn the scan into human detections (positions "
-                             "and velocities) and pass those as `humans`")
-        obs, (detected, dropped, in_range, used) = self.observation(robot_state, goal, humans, ids=ids)
+        lidar: for a policy trained with a LiDAR (env.lidar_rays = R > 0, `self.lidar_rays`), required: the R
+        ranges in metres, ray 0 along the robot's heading, counter-clockwise; ranges above the sensor range are
+        clipped to it, non-finite ones read as the sensor range and counted (`Decision.num_lidar_invalid`,
+        logged). A policy without a LiDAR (every shipped one) refuses a scan: detections are its only view."""
+        obs, counts = self.observation(robot_state, goal, humans, lidar, ids=ids)
+        detected, dropped, in_range, used = counts[:4]
+        invalid = counts[4] if self.lidar_rays else 0
         action, self.state = self._run(*obs, self.state)
         action = np.asarray(action, np.float32)
         if dropped:
             self.dropped_total += dropped
             log.warning("dropped %d of %d detections with a non-finite position, velocity or radius (%d so far)",
                         dropped, detected, self.dropped_total)
+        if invalid:
+            self.lidar_invalid_total += invalid
+            log.warning("%d of %d LiDAR rays had a non-finite range, read as the sensor range %g m (%d so far)",
+                        invalid, self.lidar_rays, self.env_config.sensor_range, self.lidar_invalid_total)
         rs = _robot_state(robot_state)
-        return Decision(self._command(action, rs), action, detected, dropped, in_range, used)
+        return Decision(self._command(action, rs), action, detected, dropped, in_range, used, invalid)
 
     def _command(self, action: np.ndarray, rs: np.ndarray) -> np.ndarray:
         env = self.env_config

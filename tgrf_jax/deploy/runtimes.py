@@ -9,7 +9,6 @@ import numpy as np
 
 from tgrf_jax.config import ConfigError
 from tgrf_jax.deploy.policy import (
-    INPUT_NAMES,
     ONNX_FILE,
     STABLEHLO_FILE,
     PolicySource,
@@ -52,9 +51,13 @@ class OnnxRuntime:
         options.log_severity_level = 3  # unused-initializer notices are noise for the user
         self._session = ort.InferenceSession(str(_need_file(directory, ONNX_FILE, "onnx")), options,
                                              providers=["CPUExecutionProvider"])
+        # the file's own input order: policy.INPUT_NAMES, or LIDAR_INPUT_NAMES for a policy that reads a scan
+        self._names = [i.name for i in self._session.get_inputs()]
 
     def __call__(self, *inputs):
-        action, state = self._session.run(None, dict(zip(INPUT_NAMES, inputs)))
+        if len(inputs) != len(self._names):
+            raise ValueError(f"the ONNX policy takes {len(self._names)} inputs {self._names}; got {len(inputs)}")
+        action, state = self._session.run(None, dict(zip(self._names, inputs)))
         return action, state
 
 

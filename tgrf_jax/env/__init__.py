@@ -3,6 +3,7 @@
 from tgrf_jax.env.crowd import CrowdNavEnv
 from tgrf_jax.env.types import (
     COLLISION,
+    OBSTACLE_COLLISION,
     OUTCOME_NAMES,
     RUNNING,
     SUCCESS,
@@ -17,5 +18,5 @@ from tgrf_jax.env.types import (
 
 __all__ = [
     "CrowdNavEnv", "EnvParams", "EnvState", "Humans", "Info", "Obs", "Robot",
-    "RUNNING", "SUCCESS", "COLLISION", "TIMEOUT", "OUTCOME_NAMES",
+    "RUNNING", "SUCCESS", "COLLISION", "TIMEOUT", "OBSTACLE_COLLISION", "OUTCOME_NAMES",
 ]

@@ -18,12 +18,15 @@ import jax.numpy as jnp
 from tgrf_jax import reward as reward_lib
 from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
 from tgrf_jax.env import humans as humans_lib
+from tgrf_jax.env import obstacles as obstacles_lib
 from tgrf_jax.env import prediction, scenario, sensing
 from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.gst import history as gst_history
 from tgrf_jax.env.gst import weights as gst_weights
+from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.env.types import (
     COLLISION,
+    OBSTACLE_COLLISION,
     RUNNING,
     SUCCESS,
     TIMEOUT,
@@ -34,6 +37,7 @@ from tgrf_jax.env.types import (
     Robot,
 )
 
+_START_CLEARANCE = 0.2  # metres kept between the robot and an obstacle at its start and goal
 _RESET_CHUNK = 16  # fresh episodes computed together by step_batch (a step finishes a few per 512 envs)
 
 
@@ -212,16 +216,18 @@ class CrowdNavEnv:
     def reset_env(self, key, params: EnvParams) -> tuple[Obs, EnvState]:
         k_robot, k_humans = jax.random.split(key)
         tries = self.config.spawn_tries
-        sampler = scenario.sampler(self.config.scenario)
+        sampler = scenario.sampler(self.config)
         # Folded keys (not splits) keep the robot and crowd of a full-crowd circle-crossing episode what they were
         # before the neighbour distance, the crowd size and the scenario became random.
         if self.config.scenario == "mix":
-            index = scenario.draw_scenario(jax.random.fold_in(key, 3), params.scenario_weights)
+            index = sampler.global_index(scenario.draw_scenario(jax.random.fold_in(key, 3), params.scenario_weights))
         else:
             index = jnp.int32(scenario.scenario_index(self.config.scenario))
         robot = scenario.robot_start(k_robot, params, sampler, index, tries)
+        layout, dropped = self._layout(jax.random.fold_in(key, 4), params, robot, sampler, index)
         active = scenario.active_slots(jax.random.fold_in(key, 2), params, self.config.num_humans)
-        humans = scenario.spawn_humans(k_humans, params, robot, self.config.num_humans, tries, active, sampler, index)
+        humans = scenario.spawn_humans(k_humans, params, robot, self.config.num_humans, tries, active, sampler, index,
+                                       layout)
         neighbor_dist = scenario.uniform(jax.random.fold_in(key, 1), (), params.orca_neighbor_dist_min,
                                          params.orca_neighbor_dist_max)
         state = EnvState(
@@ -231,8 +237,10 @@ class CrowdNavEnv:
             step_count=jnp.zeros((), jnp.int32),
             orca_neighbor_dist=neighbor_dist,
             scenario=index,
+            obstacles=layout,
+            obstacles_dropped=dropped,
         )
-        visible = sensing.visible_mask(state, params)
+        visible = self.visible(state, params)
         if self.config.predictor == "gst":
             state = state.replace(history=gst_history.fresh(robot.pos, humans.pos, visible))
             # Nobody is seen in two frames of a fresh history, so the model would predict nobody and every
@@ -240,7 +248,46 @@ class CrowdNavEnv:
             predictions = gst_history.fresh_predictions(state.history)
         else:
             predictions, _ = self._predict(state, params, visible)
-        return sensing.observe(state, params, predictions, visible), state
+        return self._observe(state, params, predictions, visible), state
+
+    def _layout(self, key, params: EnvParams, robot: Robot, sampler, index) -> tuple[Obstacles, jnp.ndarray]:
+        """The episode's obstacles: the scenario's slots, then the fixed `env.obstacles`; a slot that would hold the
+        robot's start or goal is removed (and counted), so the robot never starts in a wall nor has its goal in one."""
+        cfg = self.config
+        if cfg.obstacle_slots == 0:
+            return obstacles_lib.empty(0, cfg.obstacle_vertices), jnp.zeros((), jnp.int32)
+        parts = []
+        if sampler.draws_obstacles:
+            vertices, counts = sampler.layout(key, params, robot, index, cfg.spawn_tries)
+            pad = cfg.obstacle_vertices - vertices.shape[1]
+            parts.append(Obstacles(jnp.pad(vertices, ((0, 0), (0, pad), (0, 0))), counts))
+        if cfg.obstacles:
+            parts.append(obstacles_lib.from_polygons(cfg.obstacles, max_vertices=cfg.obstacle_vertices))
+        layout = Obstacles(jnp.concatenate([p.vertices for p in parts]),
+                           jnp.concatenate([p.num_vertices for p in parts]).astype(jnp.int32))
+        # per slot: the robot's room at its start and goal from that slot alone
+        single = jax.vmap(lambda v, n: Obstacles(v[None], n[None]))(layout.vertices, layout.num_vertices)
+        room = jax.vmap(lambda one: obstacles_lib.clearance(jnp.stack([robot.pos, robot.goal]), one))(single)
+        blocking = (layout.num_vertices > 0) & jnp.any(room < params.robot_radius + _START_CLEARANCE, axis=-1)
+        layout = layout.replace(num_vertices=jnp.where(blocking, 0, layout.num_vertices))
+        return layout, jnp.sum(blocking, dtype=jnp.int32)
+
+    def visible(self, state: EnvState, params: EnvParams):
+        """Humans the robot perceives: within sensor range and, with env.occlusion, in its line of sight."""
+        visible = sensing.visible_mask(state, params)
+        if self.config.occlusion and self.config.obstacle_slots > 0:
+            visible = visible & obstacles_lib.line_of_sight(state.robot.pos, state.humans.pos, state.obstacles)
+        return visible
+
+    def _observe(self, state: EnvState, params: EnvParams, predictions, visible) -> Obs:
+        cfg = self.config
+        if cfg.lidar_rays > 0:
+            h = state.humans
+            lidar = obstacles_lib.lidar_scan(state.robot.pos, state.robot.heading, state.obstacles, h.pos, h.radius,
+                                             h.active, num_rays=cfg.lidar_rays, max_range=params.sensor_range)
+        else:
+            lidar = jnp.zeros((0,), jnp.float32)
+        return sensing.observe(state, params, predictions, visible, lidar)
 
     def step_env(self, key, state: EnvState, action, params: EnvParams):
         """One step without auto-reset: (obs, state, reward, terminated, truncated, info)."""
@@ -250,14 +297,21 @@ class CrowdNavEnv:
         robot0, humans0 = state.robot, state.humans
 
         robot, delta_heading = move_robot(robot0, action, params, cfg.kinematics)
+        layout = state.obstacles
         human_vel = humans_lib.human_velocities(humans0, robot0 if cfg.robot_visible else None, params, cfg,
-                                                state.orca_neighbor_dist)
+                                                state.orca_neighbor_dist, layout)
         humans = humans0.replace(pos=humans0.pos + human_vel * params.dt, vel=human_vel)
 
-        # Outcome of the action, judged on the post-step state (collision swept over the step).
+        # Outcome of the action, judged on the post-step state (collisions swept over the step).
         contact = params.robot_radius + humans.radius
         closest = swept_min_distance(humans0.pos - robot0.pos, (human_vel - robot.vel) * params.dt)
-        collided = jnp.any((closest < contact) & humans.active)
+        hit_human = jnp.any((closest < contact) & humans.active)
+        if cfg.obstacle_slots > 0:
+            hit_obstacle = obstacles_lib.swept_distance(robot0.pos, robot.pos, layout) < params.robot_radius
+            obstacle_dist = obstacles_lib.clearance(robot.pos, layout) - params.robot_radius
+        else:
+            hit_obstacle, obstacle_dist = jnp.zeros((), bool), jnp.full((), jnp.inf)
+        collided = hit_human | hit_obstacle
         dmin = jnp.min(jnp.where(humans.active,
                                  sensing.edge_distances(robot.pos, humans.pos, params.robot_radius, humans.radius),
                                  jnp.inf), initial=jnp.inf)
@@ -266,14 +320,14 @@ class CrowdNavEnv:
 
         step_count = state.step_count + 1
         if cfg.num_humans > 0:
-            sampler = scenario.sampler(cfg.scenario)
+            sampler = scenario.sampler(cfg)
             humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.goal_tries, sampler,
-                                           state.scenario)
+                                           state.scenario, layout)
             humans = scenario.respawn_arrived(k_respawn, humans, robot, params, cfg.spawn_tries, sampler,
-                                              state.scenario)
+                                              state.scenario, layout)
         next_state = state.replace(robot=robot, humans=humans, step_count=step_count)
 
-        visible = sensing.visible_mask(next_state, params)
+        visible = self.visible(next_state, params)
         if cfg.predictor == "gst":
             next_state = next_state.replace(history=gst_history.push(state.history, robot.pos, humans.pos, visible))
         predictions, counted = self._predict(next_state, params, visible)
@@ -301,7 +355,7 @@ class CrowdNavEnv:
         terminated = collided | reached
         truncated = (step_count >= params.max_steps) & ~terminated
         outcome = jnp.select(
-            [collided, reached, truncated], [COLLISION, SUCCESS, TIMEOUT], RUNNING
+            [hit_human, hit_obstacle, reached, truncated], [COLLISION, OBSTACLE_COLLISION, SUCCESS, TIMEOUT], RUNNING
         ).astype(jnp.int32)
 
         # The episode's last step never counts as an intrusion (it is counted in the ITR's denominator), as in
@@ -309,7 +363,7 @@ class CrowdNavEnv:
         future_hit, future_dist = self._future_intrusion(next_state, visible, predictions, params)
         future_hit = future_hit & ~(terminated | truncated)
         future_dist = jnp.where(future_hit, future_dist, jnp.inf)
-        obs = sensing.observe(next_state, params, predictions, visible)
+        obs = self._observe(next_state, params, predictions, visible)
         info = Info(
             outcome=outcome,
             time=step_count.astype(jnp.float32) * params.dt,
@@ -319,6 +373,8 @@ class CrowdNavEnv:
             future_dist=future_dist,
             path_increment=jnp.linalg.norm(robot.pos - robot0.pos),
             num_visible=jnp.sum(visible).astype(jnp.int32),
+            obstacle_dist=obstacle_dist,
+            obstacles_dropped=state.obstacles_dropped,
             reward_terms=terms,
             final_obs=obs,
         )
@@ -330,7 +386,8 @@ class CrowdNavEnv:
         if self.config.predictor == "gst":
             pred = gst_history.predictions(params.predictor, state.history)
             return pred.means, visible & pred.out_mask
-        return prediction.predict(state.humans, params, self.config, state.orca_neighbor_dist), visible
+        return prediction.predict(state.humans, params, self.config, state.orca_neighbor_dist,
+                                  state.obstacles), visible
 
     def _future_intrusion(self, state: EnvState, visible, predictions, params):
         """itr_future: robot centre within intrusion_radius of a visible human's true position at t+1..t+K."""
@@ -340,7 +397,8 @@ class CrowdNavEnv:
         if cfg.predictor == "truth":
             future = predictions
         else:
-            future = prediction.true_future(state.humans, params, cfg, cfg.pred_horizon, state.orca_neighbor_dist)
+            future = prediction.true_future(state.humans, params, cfg, cfg.pred_horizon, state.orca_neighbor_dist,
+                                            state.obstacles)
         dist = norm(future - state.robot.pos)
         dist = jnp.where(visible[:, None], dist, jnp.inf)
         nearest = jnp.min(dist, initial=jnp.inf)

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 from tgrf_jax.config import EnvConfig
 from tgrf_jax.env import orca, social_force
 from tgrf_jax.env.geometry import safe_norm
+from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.env.types import EnvParams, Humans, Robot
 
 
@@ -21,13 +22,17 @@ def preferred_velocity(pos, goal):
 ORCA_RADIUS_PAD = 0.01
 
 
-def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, config: EnvConfig, neighbor_dist):
+def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, config: EnvConfig, neighbor_dist,
+                     obstacles: Obstacles | None = None):
     """New velocities (N, 2) of all humans from the current joint state.
 
     `robot` is None when humans do not see the robot (the default); otherwise it joins the solve as an extra
     agent whose own result is discarded. `neighbor_dist` is the episode's ORCA neighbour distance
-    (`EnvState.orca_neighbor_dist`).
+    (`EnvState.orca_neighbor_dist`). `obstacles`: the episode's static obstacles (ORCA: RVO2's obstacle lines;
+    Social Force: the wall force), None or no slots for an open space.
     """
+    if obstacles is not None and obstacles.num_vertices.shape[-1] == 0:
+        obstacles = None
     n = humans.pos.shape[0]
     if n == 0:
         return jnp.zeros((0, 2))
@@ -48,11 +53,13 @@ def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, con
             pos, vel, radius + ORCA_RADIUS_PAD + params.orca_safety_space, pref, v_pref,
             time_horizon=params.orca_time_horizon, dt=params.dt,
             neighbor_dist=neighbor_dist, max_neighbors=config.max_neighbors, neighbor_mask=present,
+            **({} if obstacles is None else dict(obstacles=(obstacles.vertices, obstacles.num_vertices),
+                                                 time_horizon_obst=params.orca_time_horizon_obst)),
         )
     else:
         new_vel = social_force.step(
             pos, vel, goal, radius, v_pref, a=params.sf_a, b=params.sf_b, ki=params.sf_ki, dt=params.dt,
-            neighbor_mask=present,
+            neighbor_mask=present, obstacles=obstacles,
         )
     # Inactive slots stay where they are parked.
     return jnp.where(humans.active[:, None], new_vel[:n], 0.0)

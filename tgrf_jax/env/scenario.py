@@ -19,9 +19,11 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from tgrf_jax.config import SCENARIOS
+from tgrf_jax.config import SCENARIO_OBSTACLE_SLOTS, SCENARIO_OBSTACLE_VERTICES, SCENARIOS
+from tgrf_jax.env import obstacles as obstacles_lib
 from tgrf_jax.env.batching import cond_gathered
 from tgrf_jax.env.geometry import norm
+from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.env.types import EnvParams, Humans, Robot
 
 def _mix32(x):
@@ -144,10 +146,15 @@ class Scenario(NamedTuple):
     """One scenario's samplers (pure functions of a key and the traced params).
 
     robot(key, params, tries) -> Robot
-    spawn(key, params, n, tries) -> (pos, goal) candidates, each (n, tries, 2): human i of an episode
-    new_goal(key, params, humans, tries) -> goal candidates (N, tries, 2) for a goal change
-    respawn(key, params, pos, goal, tries) -> (pos, goal) candidates (tries, 2) replacing an arrived human
+    spawn(key, params, layout, n, tries) -> (pos, goal) candidates, each (n, tries, 2): human i of an episode
+    new_goal(key, params, layout, humans, tries) -> goal candidates (N, tries, 2) for a goal change
+    respawn(key, params, layout, pos, goal, tries) -> (pos, goal) candidates (tries, 2) replacing an arrived human
+    layout(key, params, robot, tries) -> (vertices (S, V, 2), num_vertices (S,)): the episode's obstacles in the
+        scenario's S = SCENARIO_OBSTACLE_SLOTS slots (None: an open space)
     speed: factor on the humans' preferred speeds
+
+    `layout` in the human samplers is the episode's `Obstacles` (the scenario's slots first): the obstacle
+    scenarios read their drawn geometry (a corridor's width, a door's place) from it.
     """
 
     robot: Callable
@@ -155,6 +162,16 @@ class Scenario(NamedTuple):
     new_goal: Callable
     respawn: Callable
     speed: float = 1.0
+    layout: Callable | None = None
+
+
+def _open_space(fn):
+    """A crowd scenario's human sampler, which has no use for the layout."""
+    return lambda key, params, layout, *rest: fn(key, params, *rest)
+
+
+def _crowd(robot, spawn, new_goal, respawn, speed=1.0) -> Scenario:
+    return Scenario(robot, _open_space(spawn), _open_space(new_goal), _open_space(respawn), speed)
 
 
 def _box(key, shape, lo_x, hi_x, lo_y, hi_y):
@@ -325,33 +342,253 @@ def _random_respawn(key, params, pos, goal, tries):
     return jnp.broadcast_to(pos, (tries, 2)), _square_points(key, params, (tries,))
 
 
+# ------------------------------------------------------------------------------ scenarios with static obstacles
+#
+# Humans have no planner beyond ORCA's local avoidance (as in RVO2), so each obstacle scenario draws human starts
+# and goals whose straight path stays clear of the walls: along a corridor, through a door's gap, down one arm of
+# an intersection. The robot gets no such help: its goal may lie behind a wall's end or a door.
+_WALL_CLEARANCE = 0.6  # how far from a wall the humans' lanes stay (the largest human radius plus a margin)
+
+
+def _slots(*polygons):
+    """(vertices (S, V, 2), num_vertices (S,)) of the scenario slots from polygons (V_i, 2) of up to V vertices."""
+    vertices = jnp.zeros((SCENARIO_OBSTACLE_SLOTS, SCENARIO_OBSTACLE_VERTICES, 2), jnp.float32)
+    counts = jnp.zeros((SCENARIO_OBSTACLE_SLOTS,), jnp.int32)
+    for m, polygon in enumerate(polygons):
+        vertices = vertices.at[m, :polygon.shape[0]].set(polygon)
+        counts = counts.at[m].set(polygon.shape[0])
+    return vertices, counts
+
+
+def _box_polygon(cx, cy, hx, hy, angle=0.0):
+    """A rectangle's 4 vertices, counter-clockwise, centred at (cx, cy) with half-sizes (hx, hy), rotated."""
+    corners = jnp.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * jnp.stack([hx, hy])
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([cx + c * corners[:, 0] - s * corners[:, 1], cy + s * corners[:, 0] + c * corners[:, 1]], -1)
+
+
+def _segment(x0, y0, x1, y1):
+    return jnp.stack([jnp.stack([x0, y0]), jnp.stack([x1, y1])]).astype(jnp.float32)
+
+
+# corridor: two walls at x = -w and x = +w along the robot's way (a corridor 2.5 to 4 m wide, w drawn per
+# episode); humans walk it both ways in lanes clear of the walls.
+def _corridor_layout(key, params, robot, tries):
+    w = uniform(key, (), 1.25, 2.0)
+    r = params.circle_radius
+    return _slots(_segment(-w, r, -w, -r), _segment(w, -r, w, r))
+
+
+def _corridor_lane(layout):
+    """Half-width of the humans' lanes: inside the corridor, clear of its walls."""
+    return jnp.maximum(layout.vertices[1, 0, 0] - _WALL_CLEARANCE, 0.1)
+
+
+def _corridor_spawn(key, params, layout, n, tries):
+    k_pos, k_goal = jax.random.split(key)
+    c, r = _corridor_lane(layout), params.circle_radius
+    direction = jnp.where(jnp.arange(n) % 2 == 0, 1.0, -1.0)[:, None]
+    return _box(k_pos, (n, tries), -c, c, -r, r), _stream_goal(k_goal, params, direction, (n, tries), c)
+
+
+def _corridor_new_goal(key, params, layout, humans, tries):
+    direction = jnp.sign(humans.goal[:, 1:2])
+    return _stream_goal(key, params, direction, (humans.pos.shape[0], tries), _corridor_lane(layout))
+
+
+def _corridor_respawn(key, params, layout, pos, goal, tries):
+    k_pos, k_goal = jax.random.split(key)
+    direction, c = jnp.sign(goal[1]), _corridor_lane(layout)
+    return (_stream_goal(k_pos, params, -direction, (tries,), c),
+            _stream_goal(k_goal, params, direction, (tries,), c))
+
+
+# doorway: a wall across the robot's way at y = y_d in [-1, 1] with one gap 1.2 to 2 m wide centred at x_d in
+# [-1, 1]; humans cross it both ways through the gap, on straight lines through a point of the gap.
+def _doorway_layout(key, params, robot, tries):
+    u = uniform(key, (3,))
+    y, x, half = 2.0 * u[0] - 1.0, 2.0 * u[1] - 1.0, 0.6 + 0.4 * u[2]
+    r = params.circle_radius + 2.0
+    return _slots(_segment(-r, y, x - half, y), _segment(x + half, y, r, y))
+
+
+def _door(layout):
+    """The gap's centre (2,) and half-width."""
+    left_end, right_start = layout.vertices[0, 1], layout.vertices[1, 0]
+    return 0.5 * (left_end + right_start), 0.5 * (right_start[0] - left_end[0])
+
+
+def _through_door(key, layout, shape, side):
+    """Start and goal on opposite sides of the door (`side` +1: the start below it), their straight line crossing
+    the wall inside the gap, each 2 to 6 m from it."""
+    k_x, k_a, k_d = jax.random.split(key, 3)
+    centre, half = _door(layout)
+    cross = centre[0] + (2.0 * uniform(k_x, shape) - 1.0) * jnp.maximum(half - _WALL_CLEARANCE, 0.0)
+    angle = (2.0 * uniform(k_a, shape) - 1.0) * 0.6
+    dist = uniform(k_d, shape + (2,), 2.0, 6.0)
+    ux, uy = jnp.sin(angle), jnp.cos(angle) * side
+    point = jnp.stack([cross, jnp.broadcast_to(centre[1], shape)], -1)
+    direction = jnp.stack([ux, uy], -1)
+    return point - dist[..., :1] * direction, point + dist[..., 1:] * direction
+
+
+def _doorway_spawn(key, params, layout, n, tries):
+    side = jnp.where(jnp.arange(n) % 2 == 0, 1.0, -1.0)[:, None]
+    return _through_door(key, layout, (n, tries), side)
+
+
+def _doorway_new_goal(key, params, layout, humans, tries):
+    # back through the door from the side the human is on now
+    side = jnp.where(humans.pos[:, 1:2] < _door(layout)[0][1], 1.0, -1.0)
+    return _through_door(key, layout, (humans.pos.shape[0], tries), side)[1]
+
+
+def _doorway_respawn(key, params, layout, pos, goal, tries):
+    k_side, k_pair = jax.random.split(key)
+    side = jnp.where(uniform(k_side, ()) < 0.5, 1.0, -1.0)
+    return _through_door(k_pair, layout, (tries,), side)
+
+
+# intersection: two corridors of half-width w (1.25 to 2 m) crossing at the origin, walled by four corner blocks,
+# so people coming along the cross corridor are hidden until they reach the crossing (a blind corner). The robot
+# goes straight up its corridor; two humans in three walk the cross corridor, the others the robot's.
+def _intersection_layout(key, params, robot, tries):
+    w = uniform(key, (), 1.25, 2.0)
+    r = params.circle_radius
+    half, mid = 0.5 * (r - w), 0.5 * (r + w)
+    return _slots(*(_box_polygon(sx * mid, sy * mid, half, half) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))))
+
+
+def _intersection_lane(layout):
+    return jnp.maximum(layout.vertices[0, 0, 0] - _WALL_CLEARANCE, 0.1)  # the NE block's inner corner is (w, w)
+
+
+def _arm_pair(key, params, layout, shape, across, direction):
+    """Start and goal at the two ends of a corridor (`across`: the cross corridor along x), in its lane."""
+    k_s, k_g = jax.random.split(key)
+    c = _intersection_lane(layout)
+    start = _stream_goal(k_s, params, -direction, shape, c)
+    goal = _stream_goal(k_g, params, direction, shape, c)
+    swap = lambda p: jnp.where(across[..., None], p[..., ::-1], p)  # noqa: E731  (x, y) -> (y, x)
+    return swap(start), swap(goal)
+
+
+def _intersection_spawn(key, params, layout, n, tries):
+    k_pair, k_dir = jax.random.split(key)
+    across = jnp.broadcast_to((jnp.arange(n) % 3 != 2)[:, None], (n, tries))
+    direction = jnp.where(uniform(k_dir, (n, 1)) < 0.5, -1.0, 1.0) * jnp.ones((n, tries))
+    start, goal = _arm_pair(k_pair, params, layout, (n, tries), across, direction)
+    # spread the starts along the corridor so the crossing is busy from the first step
+    t = uniform(jax.random.fold_in(key, 1), (n, tries, 1))
+    return start + t * (goal - start) * 0.9, goal
+
+
+def _intersection_new_goal(key, params, layout, humans, tries):
+    across = jnp.abs(humans.goal[:, 0]) > jnp.abs(humans.goal[:, 1])
+    n = humans.pos.shape[0]
+    along = jnp.where(across, humans.goal[:, 0], humans.goal[:, 1])
+    direction = jnp.sign(along)[:, None] * jnp.ones((n, tries))
+    return _arm_pair(key, params, layout, (n, tries), jnp.broadcast_to(across[:, None], (n, tries)), direction)[1]
+
+
+def _intersection_respawn(key, params, layout, pos, goal, tries):
+    k_pair, k_kind = jax.random.split(key)
+    u = uniform(k_kind, (2,))
+    across = jnp.broadcast_to(u[0] < 2.0 / 3.0, (tries,))
+    direction = jnp.where(u[1] < 0.5, -1.0, 1.0) * jnp.ones((tries,))
+    return _arm_pair(k_pair, params, layout, (tries,), across, direction)
+
+
+# random_obstacles: 1 to 8 boxes (sides 0.5 to 1.5 m, any orientation) scattered in the robot's arena, each clear
+# of the robot's start and goal and 0.6 m from the others (so there is always a way between them); humans cross
+# the circle as in circle_crossing, around the boxes.
+def _random_obstacles_layout(key, params, robot, tries):
+    k_count, k_box = jax.random.split(key)
+    count = 1 + jnp.floor(uniform(k_count, ()) * SCENARIO_OBSTACLE_SLOTS)
+    a = params.arena_size
+    u = uniform(k_box, (SCENARIO_OBSTACLE_SLOTS, tries, 5))
+    centre = (2.0 * u[..., :2] - 1.0) * a
+    half = 0.25 + 0.5 * u[..., 2:4]
+    angle = u[..., 4] * (0.5 * jnp.pi)
+    reach = jnp.sqrt(jnp.sum(half * half, -1))  # the box's circumradius
+    keep_off = reach + params.robot_radius + 0.5
+    margin = jnp.minimum(norm(centre - robot.pos) - keep_off, norm(centre - robot.goal) - keep_off)
+
+    def place(carry, m):
+        placed_centre, placed_reach, placed = carry
+        apart = norm(centre[m][:, None] - placed_centre[None]) - reach[m][:, None] - placed_reach[None] - 0.6
+        ok = margin[m] >= 0.0
+        ok = ok & jnp.all((apart >= 0.0) | ~placed[None], axis=-1)
+        pick = jnp.argmax(ok)
+        use = jnp.any(ok) & (m < count)
+        carry = (placed_centre.at[m].set(centre[m, pick]), placed_reach.at[m].set(reach[m, pick]),
+                 placed.at[m].set(use))
+        box = _box_polygon(centre[m, pick, 0], centre[m, pick, 1], half[m, pick, 0], half[m, pick, 1],
+                           angle[m, pick])
+        return carry, (box, jnp.where(use, 4, 0).astype(jnp.int32))
+
+    init = (jnp.zeros((SCENARIO_OBSTACLE_SLOTS, 2)), jnp.zeros((SCENARIO_OBSTACLE_SLOTS,)),
+            jnp.zeros((SCENARIO_OBSTACLE_SLOTS,), bool))
+    _, (boxes, counts) = jax.lax.scan(place, init, jnp.arange(SCENARIO_OBSTACLE_SLOTS))
+    return boxes.astype(jnp.float32), counts
+
+
 SCENARIO_TABLE = {
-    "circle_crossing": Scenario(sample_robot, _circle_spawn, _circle_new_goal, _circle_respawn),
-    "square_crossing": Scenario(sample_robot, _square_spawn, _square_new_goal, _square_respawn),
-    "parallel_traffic": Scenario(_lane_robot, _parallel_spawn, _lane_new_goal(0.5), _lane_respawn(0.5)),
-    "perpendicular_traffic": Scenario(_lane_robot, _perpendicular_spawn, _perpendicular_new_goal,
-                                      _perpendicular_respawn),
-    "frontal_approach": Scenario(_lane_robot, _frontal_spawn, _lane_new_goal(0.25), _lane_respawn(0.25)),
-    "robot_overtaking": Scenario(_lane_robot, _overtaking_spawn, _lane_new_goal(0.25), _lane_respawn(0.25), 0.5),
-    "robot_crowding": Scenario(_lane_robot, _crowding_spawn, _crowding_new_goal, _crowding_respawn),
-    "random": Scenario(sample_robot, _random_spawn, _random_new_goal, _random_respawn),
+    "circle_crossing": _crowd(sample_robot, _circle_spawn, _circle_new_goal, _circle_respawn),
+    "square_crossing": _crowd(sample_robot, _square_spawn, _square_new_goal, _square_respawn),
+    "parallel_traffic": _crowd(_lane_robot, _parallel_spawn, _lane_new_goal(0.5), _lane_respawn(0.5)),
+    "perpendicular_traffic": _crowd(_lane_robot, _perpendicular_spawn, _perpendicular_new_goal,
+                                    _perpendicular_respawn),
+    "frontal_approach": _crowd(_lane_robot, _frontal_spawn, _lane_new_goal(0.25), _lane_respawn(0.25)),
+    "robot_overtaking": _crowd(_lane_robot, _overtaking_spawn, _lane_new_goal(0.25), _lane_respawn(0.25), 0.5),
+    "robot_crowding": _crowd(_lane_robot, _crowding_spawn, _crowding_new_goal, _crowding_respawn),
+    "random": _crowd(sample_robot, _random_spawn, _random_new_goal, _random_respawn),
+    "corridor": Scenario(_lane_robot, _corridor_spawn, _corridor_new_goal, _corridor_respawn,
+                         layout=_corridor_layout),
+    "doorway": Scenario(_lane_robot, _doorway_spawn, _doorway_new_goal, _doorway_respawn, layout=_doorway_layout),
+    "intersection": Scenario(_lane_robot, _intersection_spawn, _intersection_new_goal, _intersection_respawn,
+                             layout=_intersection_layout),
+    "random_obstacles": _crowd(sample_robot, _circle_spawn, _circle_new_goal, _circle_respawn)._replace(
+        layout=_random_obstacles_layout),
 }
 assert tuple(SCENARIO_TABLE) == SCENARIOS, "config.SCENARIOS lists the scenarios in this order"
 
 
 class Sampler(NamedTuple):
-    """The samplers of one configured scenario: `scenarios` is one `Scenario` (a fixed scenario: called
-    directly) or all of them (mix: each call selects the episode's by `lax.switch` on its index)."""
+    """The samplers of one configured env: `scenarios` holds one `Scenario` (a fixed scenario: called directly)
+    or the mix's (each call selects the episode's by `lax.switch` on its index into `scenarios`)."""
 
     scenarios: tuple
+    names: tuple
+
+    def local(self, index):
+        """A `SCENARIOS` index (what `EnvState.scenario` holds) as an index into `scenarios`."""
+        lookup = [self.names.index(name) if name in self.names else 0 for name in SCENARIOS]
+        return jnp.asarray(lookup, jnp.int32)[index]
+
+    def global_index(self, local):
+        """An index into `scenarios` as a `SCENARIOS` index."""
+        return jnp.asarray([SCENARIOS.index(name) for name in self.names], jnp.int32)[local]
 
     def _call(self, field, index, *args, static=()):
         """Scenario `field`'s sampler on `args` plus the trailing `static` Python values (shapes: bound, not
-        passed through the switch, which would trace them)."""
+        passed through the switch, which would trace them); `index` is a `SCENARIOS` index."""
         fns = [getattr(s, field) for s in self.scenarios]
         if len(fns) == 1:
             return fns[0](*args, *static)
-        return jax.lax.switch(index, [lambda *a, f=f: f(*a, *static) for f in fns], *args)
+        return jax.lax.switch(self.local(index), [lambda *a, f=f: f(*a, *static) for f in fns], *args)
+
+    @property
+    def draws_obstacles(self) -> bool:
+        return any(s.layout is not None for s in self.scenarios)
+
+    def layout(self, key, params, robot, index, tries: int):
+        """The scenario's obstacle slots (vertices (S, V, 2), num_vertices (S,)); open spaces leave them empty."""
+        empty = lambda key, params, robot, tries: _slots()  # noqa: E731
+        fns = [s.layout or empty for s in self.scenarios]
+        if len(fns) == 1:
+            return fns[0](key, params, robot, tries)
+        return jax.lax.switch(self.local(index), [lambda *a, f=f: f(*a, tries) for f in fns], key, params, robot)
 
     def scale_speed(self, v_pref, index):
         """Preferred speeds times the scenario's speed factor."""
@@ -363,15 +600,14 @@ class Sampler(NamedTuple):
         return v_pref * jnp.asarray(speeds, jnp.float32)[index]
 
 
-def sampler(name: str) -> Sampler:
-    """The samplers of `env.scenario` (a scenario name or 'mix')."""
-    if name == "mix":
-        return Sampler(tuple(SCENARIO_TABLE.values()))
-    return Sampler((SCENARIO_TABLE[name],))
+def sampler(config) -> Sampler:
+    """The samplers of an `EnvConfig`'s scenario, or of its mix's scenarios in the order of its weights."""
+    names = config.drawn_scenarios
+    return Sampler(tuple(SCENARIO_TABLE[name] for name in names), names)
 
 
 def scenario_index(name: str) -> int:
-    """The index of a scenario in `SCENARIOS` (the order of `env.scenario_weights`)."""
+    """The index of a scenario in `SCENARIOS` (what `EnvState.scenario` holds)."""
     return SCENARIOS.index(name)
 
 
@@ -386,12 +622,30 @@ def robot_start(key, params: EnvParams, sampler: Sampler, index, tries: int) -> 
     return sampler._call("robot", index, key, params, static=(tries,))
 
 
+_CIRCLE_CROSSING = Sampler((SCENARIO_TABLE["circle_crossing"],), ("circle_crossing",))
+
+
+def obstacle_margin(candidates, own_radius, layout: Obstacles | None, gap):
+    """How far candidates (..., T, 2) of radius `own_radius` (...,) keep `gap` from every obstacle (negative:
+    too close or inside one), or None without obstacle slots."""
+    if layout is None or layout.num_vertices.shape[-1] == 0:
+        return None
+    return obstacles_lib.clearance(candidates, layout) - own_radius[..., None] - gap
+
+
+def _with_obstacles(margin, candidates, own_radius, layout, gap):
+    """An agent-spacing margin (squared metres) also requiring room from the obstacles."""
+    room = obstacle_margin(candidates, own_radius, layout, gap)
+    return margin if room is None else jnp.minimum(margin, room)
+
+
 def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: int, active=None,
-                 sampler: Sampler | None = None, index=0) -> Humans:
-    """Place the active humans one at a time at the scenario's spawn candidates, each clear of the robot and
-    every human placed before (positions and goals); the inactive slots are parked. `active` (N,) bool
-    defaults to all slots, `sampler` to circle crossing."""
-    sampler = sampler or Sampler((SCENARIO_TABLE["circle_crossing"],))
+                 sampler: Sampler | None = None, index=0, layout: Obstacles | None = None) -> Humans:
+    """Place the active humans one at a time at the scenario's spawn candidates, each clear of the robot, of
+    every human placed before (positions and goals) and of the obstacles; the inactive slots are parked.
+    `active` (N,) bool defaults to all slots, `sampler` to circle crossing, `layout` to no obstacles."""
+    sampler = sampler or _CIRCLE_CROSSING
+    layout = obstacles_lib.empty() if layout is None else layout
     k_attr, k_cand = jax.random.split(key)
     radius, v_pref = sample_attributes(k_attr, params, (num_humans,))
     v_pref = sampler.scale_speed(v_pref, index)
@@ -399,8 +653,12 @@ def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: i
     if num_humans == 0:
         empty = jnp.zeros((0, 2))
         return Humans(pos=empty, vel=empty, goal=empty, radius=radius, v_pref=v_pref, active=active)
-    start, goal = sampler._call("spawn", index, k_cand, params, static=(num_humans, tries))
+    start, goal = sampler._call("spawn", index, k_cand, params, layout, static=(num_humans, tries))
     candidates = jnp.concatenate([start, goal], -1)  # (N, tries, 4): a start is chosen with its goal
+    # room from the obstacles at both ends of each candidate's walk
+    room = obstacle_margin(jnp.stack([start, goal]), jnp.broadcast_to(radius, (2, num_humans)), layout,
+                           params.spawn_clearance)
+    room = None if room is None else jnp.min(room, axis=0)
 
     # Slot 0 of the "others" arrays is the robot; slots 1..N fill up with placed humans.
     others_pos = jnp.zeros((num_humans + 1, 2)).at[0].set(robot.pos)
@@ -413,6 +671,8 @@ def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: i
         margin = clearance(
             candidates[i, :, :2], radius[i], others_pos, others_goal, others_radius, placed, params.spawn_clearance
         )
+        if room is not None:
+            margin = jnp.minimum(margin, room[i])
         pick = choose(candidates[i], margin)
         carry = (others_pos.at[i + 1].set(pick[:2]), others_goal.at[i + 1].set(pick[2:]),
                  placed.at[i + 1].set(active[i]))
@@ -448,35 +708,38 @@ def choose(candidates, margin):
 
 
 def change_goals(key, humans: Humans, robot: Robot, params: EnvParams, step_count, tries: int,
-                 sampler: Sampler | None = None, index=0) -> Humans:
+                 sampler: Sampler | None = None, index=0, layout: Obstacles | None = None) -> Humans:
     """Every goal_change_interval seconds each active human switches, with goal_change_prob, to a new goal
     drawn by the scenario.
 
     The candidates are drawn only on the steps where changes fall due (one in 20 by default), also in a
     vmapped batch of environments, where only the environments that are due do the work (see `cond_gathered`).
     """
-    sampler = sampler or Sampler((SCENARIO_TABLE["circle_crossing"],))
+    sampler = sampler or _CIRCLE_CROSSING
+    layout = obstacles_lib.empty() if layout is None else layout
     due = (step_count % params.goal_change_period) == 0
     return cond_gathered(due, lambda *args: _switch_goals(*args, tries, sampler), _unchanged,
-                         key, humans, robot, params, jnp.asarray(index, jnp.int32))
+                         key, humans, robot, params, jnp.asarray(index, jnp.int32), layout)
 
 
-def _unchanged(key, humans: Humans, robot: Robot, params: EnvParams, index) -> Humans:
+def _unchanged(key, humans: Humans, robot: Robot, params: EnvParams, index, layout) -> Humans:
     return humans
 
 
-def _switch_goals(key, humans: Humans, robot: Robot, params: EnvParams, index, tries: int, sampler) -> Humans:
-    """Each human switches, with goal_change_prob, to a new goal clear of the others."""
+def _switch_goals(key, humans: Humans, robot: Robot, params: EnvParams, index, layout, tries: int,
+                  sampler) -> Humans:
+    """Each human switches, with goal_change_prob, to a new goal clear of the others and of the obstacles."""
     n = humans.pos.shape[0]
     k_coin, k_cand = jax.random.split(key)
     switch = (uniform(k_coin, (n,)) < params.goal_change_prob) & humans.active
-    candidates = sampler._call("new_goal", index, k_cand, params, humans, static=(tries,))
+    candidates = sampler._call("new_goal", index, k_cand, params, layout, humans, static=(tries,))
     margin = clearance(candidates, humans.radius, *_others_excluding_self(humans, robot, params), params.spawn_clearance)
+    margin = _with_obstacles(margin, candidates, humans.radius, layout, params.spawn_clearance)
     return humans.replace(goal=jnp.where(switch[:, None], choose(candidates, margin), humans.goal))
 
 
 def respawn_arrived(key, humans: Humans, robot: Robot, params: EnvParams, tries: int,
-                    sampler: Sampler | None = None, index=0) -> Humans:
+                    sampler: Sampler | None = None, index=0, layout: Obstacles | None = None) -> Humans:
     """A human within its own radius of its goal is replaced by a fresh one of the scenario (`random` keeps it
     where it is with a new goal).
 
@@ -485,9 +748,10 @@ def respawn_arrived(key, humans: Humans, robot: Robot, params: EnvParams, tries:
     simultaneous arrivals are rare. In a vmapped batch only the environments with an arrival do the work
     (see `cond_gathered`).
     """
-    sampler = sampler or Sampler((SCENARIO_TABLE["circle_crossing"],))
+    sampler = sampler or _CIRCLE_CROSSING
+    layout = obstacles_lib.empty() if layout is None else layout
     return cond_gathered(jnp.any(_arrived(humans)), lambda *args: _respawn_first(*args, tries, sampler),
-                         _unchanged, key, humans, robot, params, jnp.asarray(index, jnp.int32))
+                         _unchanged, key, humans, robot, params, jnp.asarray(index, jnp.int32), layout)
 
 
 def _arrived(humans: Humans):
@@ -495,7 +759,8 @@ def _arrived(humans: Humans):
     return (jnp.square(offset[:, 0]) + jnp.square(offset[:, 1]) < jnp.square(humans.radius)) & humans.active
 
 
-def _respawn_first(key, humans: Humans, robot: Robot, params: EnvParams, index, tries: int, sampler) -> Humans:
+def _respawn_first(key, humans: Humans, robot: Robot, params: EnvParams, index, layout, tries: int,
+                   sampler) -> Humans:
     """Replace the lowest-indexed arrived human (if any) by a fresh one."""
     n = humans.pos.shape[0]
     k_attr, k_cand = jax.random.split(key)
@@ -503,10 +768,12 @@ def _respawn_first(key, humans: Humans, robot: Robot, params: EnvParams, index, 
     who = jnp.argmax(arrived)
     radius, v_pref = sample_attributes(k_attr, params)
     v_pref = sampler.scale_speed(v_pref, index)
-    start, goal = sampler._call("respawn", index, k_cand, params, humans.pos[who], humans.goal[who],
+    start, goal = sampler._call("respawn", index, k_cand, params, layout, humans.pos[who], humans.goal[who],
                                 static=(tries,))
     pos, goals, radii, valid = _others_excluding_self(humans, robot, params)
     margin = clearance(start, radius, pos, goals, radii, valid[who], params.spawn_clearance)
+    margin = _with_obstacles(margin, start, radius, layout, params.spawn_clearance)
+    margin = _with_obstacles(margin, goal, radius, layout, params.spawn_clearance)
     pick = choose(jnp.concatenate([start, goal], -1), margin)
     replace = arrived & (jnp.arange(n) == who)
     put = lambda new, old: jnp.where(replace.reshape((n,) + (1,) * (old.ndim - 1)), new, old)

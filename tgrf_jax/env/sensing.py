@@ -33,8 +33,9 @@ def sort_order(keys):
     return jnp.sum(jnp.where(position[None, :] == idx[:, None], idx[None, :], 0), axis=-1, dtype=jnp.int32)
 
 
-def observe(state: EnvState, params: EnvParams, predictions, visible) -> Obs:
-    """Build the observation; `predictions` are world positions (N, K, 2) or None."""
+def observe(state: EnvState, params: EnvParams, predictions, visible, lidar=None) -> Obs:
+    """Build the observation; `predictions` are world positions (N, K, 2) or None, `lidar` the scan (R,) (None:
+    no LiDAR)."""
     robot, humans = state.robot, state.humans
     rel = humans.pos - robot.pos
     features = [rel]
@@ -54,4 +55,6 @@ def observe(state: EnvState, params: EnvParams, predictions, visible) -> Obs:
         human_mask=mask,
         human_vel=jnp.where(mask[:, None], humans.vel[order], 0.0),
         human_radius=jnp.where(mask, humans.radius[order], 0.0),
+        lidar=jnp.zeros((0,), jnp.float32) if lidar is None else lidar,
+        obstacles=state.obstacles,
     )

@@ -8,12 +8,14 @@ import jax.numpy as jnp
 from flax import struct
 
 from tgrf_jax.config import EnvConfig, check_env_params
+from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.fields import traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
-# Episode outcome codes carried in `Info.outcome`.
-RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
-OUTCOME_NAMES = ("running", "success", "collision", "timeout")
+# Episode outcome codes carried in `Info.outcome`: COLLISION is with a human, OBSTACLE_COLLISION with a static
+# obstacle (both end the episode with the collision penalty).
+RUNNING, SUCCESS, COLLISION, TIMEOUT, OBSTACLE_COLLISION = 0, 1, 2, 3, 4
+OUTCOME_NAMES = ("running", "success", "collision", "timeout", "obstacle_collision")
 
 
 class _EnvParamsMethods:
@@ -81,6 +83,8 @@ class EnvState:
     step_count: jnp.ndarray  # () int32 steps taken in this episode
     orca_neighbor_dist: jnp.ndarray  # () the humans' ORCA neighbour distance, drawn once per episode
     scenario: jnp.ndarray  # () int32 index of the episode's scenario in config.SCENARIOS
+    obstacles: Obstacles  # the episode's static obstacles (env.obstacle_slots slots; none: 0 slots)
+    obstacles_dropped: jnp.ndarray  # () int32 obstacle slots removed at reset for lying on the robot's start or goal
     history: Any = None  # learned predictor's observed frames (tgrf_jax.env.gst.history), else None
 
 
@@ -95,6 +99,11 @@ class Obs:
     human_mask:  (N,)  bool, True for humans within sensor range (a mask, never a magic coordinate)
     human_vel:   (N, 2) velocities of visible humans (used by the ORCA-robot baseline; zero where masked)
     human_radius:(N,)  radii of visible humans (zero where masked)
+    lidar:       (R,)  2-D LiDAR ranges in metres (R = env.lidar_rays, 0: none), ray k at heading + 2 pi k / R
+                 counter-clockwise (the robot's body frame), hits on obstacles and humans' discs, env.sensor_range
+                 where nothing is hit
+    obstacles:   the episode's static obstacles, world frame (the map; used by the ORCA-robot baseline, not by
+                 the networks)
     """
 
     robot_node: jnp.ndarray
@@ -103,6 +112,8 @@ class Obs:
     human_mask: jnp.ndarray
     human_vel: jnp.ndarray
     human_radius: jnp.ndarray
+    lidar: jnp.ndarray
+    obstacles: Obstacles
 
 
 @struct.dataclass
@@ -117,5 +128,7 @@ class Info:
     future_dist: jnp.ndarray  # () smallest such centre distance (inf when not tracked / no intrusion)
     path_increment: jnp.ndarray  # () distance the robot moved this step
     num_visible: jnp.ndarray  # () int32
+    obstacle_dist: jnp.ndarray  # () robot's edge distance to the nearest obstacle (inf without obstacles)
+    obstacles_dropped: jnp.ndarray  # () int32, the episode's EnvState.obstacles_dropped
     reward_terms: RewardTerms
     final_obs: Obs  # observation of the post-step state before any auto-reset (for bootstrapping)

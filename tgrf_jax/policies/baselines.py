@@ -53,9 +53,17 @@ class OrcaPolicy:
 
     Settings follow the CrowdNav ORCA robot: 10 m neighbour distance, 5 s horizon, safety space 0.15, the
     preferred velocity points at the goal with speed v_max. Unseen humans are masked out of the solve.
+
+    With static obstacles (`obs.obstacles` holds M > 0 slots: the map, not the LiDAR) the solve also keeps the
+    robot off them, as RVO2's obstacle lines do, for `time_horizon_obst` seconds; without (M = 0) the call is the
+    obstacle-free one, unchanged. ORCA is local avoidance only: the preferred velocity still points
+    straight at the goal, so no path is planned around a wall that stands in the way.
     """
 
     time_horizon: float = 5.0
+    # RVO2's timeHorizonObst for the robot: the same 5 s as its horizon for humans, as CrowdNav's ORCA robot sets
+    # both (time_horizon_obst = time_horizon = 5).
+    time_horizon_obst: float = 5.0
     neighbor_dist: float = 10.0
     safety_space: float = 0.15
     dt: float = 0.25
@@ -77,9 +85,14 @@ class OrcaPolicy:
         prefs = jnp.concatenate([pref[None], obs.human_vel])
         max_speeds = jnp.concatenate([v_max[None], jnp.full((n,), v_max)])
         seen = jnp.concatenate([jnp.ones((1,), bool), obs.human_mask])
+        extra = {}
+        if obs.obstacles.num_vertices.shape[-1] > 0:
+            # the obstacles in the same robot-centred frame as the agents
+            extra = dict(obstacles=(obs.obstacles.vertices - robot_pos, obs.obstacles.num_vertices),
+                         time_horizon_obst=self.time_horizon_obst)
         new_vel = orca.solve(
             pos, vel, radii, prefs, max_speeds, time_horizon=self.time_horizon, dt=self.dt,
-            neighbor_dist=self.neighbor_dist, max_neighbors=n, neighbor_mask=seen,
+            neighbor_dist=self.neighbor_dist, max_neighbors=n, neighbor_mask=seen, **extra,
         )
         return new_vel[0]
 

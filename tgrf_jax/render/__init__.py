@@ -8,7 +8,11 @@ the global backend or shows stray figures in notebooks.
 from tgrf_jax.render.draw import (
     DANGER_COLOR,
     GOAL_COLOR,
+    LIDAR_COLOR,
+    OBSTACLE_COLOR,
+    OBSTACLE_EDGE,
     OUTCOME_COLORS,
+    OUTCOME_LABELS,
     PATH_COLOR,
     PRED_COLOR,
     ROBOT_COLOR,
@@ -21,6 +25,7 @@ from tgrf_jax.render.draw import (
     FramePainter,
     draw_frame,
     new_figure,
+    outcome_label,
     plot_frame,
     plot_reward_terms,
     view_limits,
@@ -36,7 +41,9 @@ from tgrf_jax.render.export import (
 from tgrf_jax.render.record import Episode, eval_key, record_episodes
 
 __all__ = [
-    "DANGER_COLOR", "GOAL_COLOR", "OUTCOME_COLORS", "PATH_COLOR", "PRED_COLOR", "ROBOT_COLOR", "TERM_COLORS",
-    "TERM_LABELS", "UNSEEN_COLOR", "UNSEEN_EDGE", "VISIBLE_COLOR", "VISIBLE_EDGE", "Episode", "FramePainter", "animate", "draw_frame", "eval_key", "ffmpeg_path", "gif_bytes", "new_figure",
-    "plot_frame", "plot_reward_terms", "record_episodes", "save_episode", "show", "to_jshtml", "view_limits",
+    "DANGER_COLOR", "GOAL_COLOR", "LIDAR_COLOR", "OBSTACLE_COLOR", "OBSTACLE_EDGE", "OUTCOME_COLORS", "OUTCOME_LABELS",
+    "PATH_COLOR", "PRED_COLOR", "ROBOT_COLOR", "TERM_COLORS", "TERM_LABELS", "UNSEEN_COLOR", "UNSEEN_EDGE",
+    "VISIBLE_COLOR", "VISIBLE_EDGE", "Episode", "FramePainter", "animate", "draw_frame", "eval_key", "ffmpeg_path",
+    "gif_bytes", "new_figure", "outcome_label", "plot_frame", "plot_reward_terms", "record_episodes", "save_episode",
+    "show", "to_jshtml", "view_limits",
 ]

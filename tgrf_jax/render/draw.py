@@ -1,7 +1,8 @@
 """Drawing recorded episodes with matplotlib. Conventions (the colours of the paper's Fig. 5):
 
 * robot: yellow disc with its velocity as a short black tick; goal: a star inside the goal-tolerance circle;
-* humans inside the sensor range (the env's `visible_mask`): solid blue; humans outside it: pale red;
+* humans inside the sensor range (the env's `visible_mask`): solid blue; humans outside it: pale red (with
+  `env.occlusion`, humans hidden behind an obstacle are pale red too: the robot does not see them);
 * predicted positions (t+1..t+K) of visible humans, as the robot observes them: orange dots, fading with k;
 * sensor range: dashed grey circle of radius r_robot + sensor_range around the robot (the range is edge-to-edge,
   so a human is visible exactly when its body reaches into this circle);
@@ -11,7 +12,11 @@
   on danger steps;
 * trajectories so far: the robot's whole path (orange), the humans' recent trails (grey; broken where a human
   respawns);
-* a caption with time, step, visible count, nearest distance, step reward, return and, at the end, the outcome.
+* static obstacles: filled grey polygons, wall segments as thick dark grey lines (in every frame);
+* LiDAR (`show_rays=True`, off by default): a thin teal line from the robot to the end of every ray, a dot where a
+  ray hits something (obstacle or human); rays that hit nothing end faintly at the range;
+* a caption with time, step, visible count, nearest distance (and nearest obstacle), step reward, return and, at
+  the end, the outcome.
 
 Figures are built on `matplotlib.figure.Figure` with an Agg canvas, never through pyplot, so nothing here touches
 the global backend or shows stray figures in notebooks.
@@ -41,15 +46,60 @@ TERM_LABELS = {
     "goal": "r_goal", "collision": "r_col", "disc": "r_disc", "pot": "r_pot", "pred": "r_pred",
     "kinematic": "r_spin + r_back",
 }
-OUTCOME_COLORS = {"running": "#333333", "success": "#1a7f1a", "collision": "#b00000", "timeout": "#8a6d00"}
+OUTCOME_COLORS = {"running": "#333333", "success": "#1a7f1a", "collision": "#b00000", "timeout": "#8a6d00",
+                  "obstacle_collision": "#7b1fa2"}
+OUTCOME_LABELS = {"running": "running", "success": "success", "collision": "collision", "timeout": "timeout",
+                  "obstacle_collision": "obstacle collision"}
+OBSTACLE_COLOR = "#9a9a9a"
+OBSTACLE_EDGE = "#474747"
+WALL_WIDTH = 4.0  # points: a wall segment has no thickness, so it is drawn as a thick line
+LIDAR_COLOR = "#009e9e"
 
 
-def view_limits(ep: Episode, margin: float = 0.8) -> tuple[float, float, float, float]:
-    """A square window holding the robot, its goal and every human of the whole episode (fixed over frames)."""
+def outcome_label(outcome: str) -> str:
+    """How an outcome name is written in figures ("obstacle_collision" -> "obstacle collision")."""
+    return OUTCOME_LABELS.get(outcome, outcome.replace("_", " "))
+
+
+def _clip_segment(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """The part (2, 2) of segment a-b inside the box [lo, hi] (Liang-Barsky), None when none is."""
+    d = b - a
+    t0, t1 = 0.0, 1.0
+    for p, q in ((-d[0], a[0] - lo[0]), (d[0], hi[0] - a[0]), (-d[1], a[1] - lo[1]), (d[1], hi[1] - a[1])):
+        if p == 0:
+            if q < 0:
+                return None
+            continue
+        r = q / p
+        if p < 0:
+            t0 = max(t0, r)
+        else:
+            t1 = min(t1, r)
+        if t0 > t1:
+            return None
+    return np.stack([a + t0 * d, a + t1 * d])
+
+
+def _edges(polygon: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The edges of a polygon (V, 2): one for a wall segment (2 vertices), V (closed) otherwise."""
+    if len(polygon) == 2:
+        return [(polygon[0], polygon[1])]
+    return list(zip(polygon, np.roll(polygon, -1, axis=0)))
+
+
+def view_limits(ep: Episode, margin: float = 0.8, obstacle_reach: float = 1.5) -> tuple[float, float, float, float]:
+    """A square window holding the robot, its goal and every human of the whole episode (fixed over frames), and
+    the obstacles near them: the parts of obstacle edges within `obstacle_reach` metres of the box around the
+    robot, goal and humans (a corridor's long walls are cut there instead of zooming out to their ends)."""
     pts = [ep.robot_pos, ep.goal[None]]
     if ep.num_humans:
         pts.append(ep.human_pos.reshape(-1, 2))
     pts = np.concatenate(pts)
+    if ep.obstacles:
+        lo, hi = pts.min(0) - obstacle_reach, pts.max(0) + obstacle_reach
+        near = [c for poly in ep.obstacles for a, b in _edges(poly) if (c := _clip_segment(a, b, lo, hi)) is not None]
+        if near:
+            pts = np.concatenate([pts] + near)
     lo, hi = pts.min(0) - margin - 0.5, pts.max(0) + margin + 0.5
     centre, half = (lo + hi) / 2, (hi - lo).max() / 2
     return centre[0] - half, centre[0] + half, centre[1] - half, centre[1] + half
@@ -63,17 +113,19 @@ def _trail_segments(points: np.ndarray, max_jump: float) -> list[np.ndarray]:
     return [seg for seg in np.split(points, jumps) if len(seg) >= 2]
 
 
-def _legend_handles(ep: Episode):
+def _legend_handles(ep: Episode, show_rays: bool = False):
     from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     dot = dict(marker="o", linestyle="none", markersize=10)
+    unseen = "human, out of sight" if ep.occlusion else "human, out of range"  # occlusion: range or a wall
     handles = [
         Line2D([], [], markerfacecolor=ROBOT_COLOR, markeredgecolor="black", label="robot", **dot),
         Line2D([], [], marker="*", linestyle="none", markersize=13, markerfacecolor=GOAL_COLOR,
                markeredgecolor="black", label="goal"),
         Line2D([], [], markerfacecolor=VISIBLE_COLOR, markeredgecolor=VISIBLE_EDGE, label="human, in sensor range",
                **dot),
-        Line2D([], [], markerfacecolor=UNSEEN_COLOR, markeredgecolor=UNSEEN_EDGE, label="human, out of range", **dot),
+        Line2D([], [], markerfacecolor=UNSEEN_COLOR, markeredgecolor=UNSEEN_EDGE, label=unseen, **dot),
         Line2D([], [], color=PRED_COLOR, marker="o", markersize=4, linewidth=1.3, label="predicted positions"),
         Line2D([], [], color="#606060", linestyle="--", label="sensor range"),
         Line2D([], [], color=DANGER_COLOR, linestyle=":", linewidth=1.5, label=f"danger zone (d_disc {ep.d_disc:g} m)"),
@@ -81,6 +133,13 @@ def _legend_handles(ep: Episode):
     ]
     if ep.pred_pos is None:
         handles.pop(4)
+    if any(len(p) >= 3 for p in ep.obstacles):
+        handles.append(Patch(facecolor=OBSTACLE_COLOR, edgecolor=OBSTACLE_EDGE, label="obstacle"))
+    if any(len(p) == 2 for p in ep.obstacles):
+        handles.append(Line2D([], [], color=OBSTACLE_EDGE, linewidth=WALL_WIDTH, label="wall"))
+    if show_rays:
+        handles.append(Line2D([], [], color=LIDAR_COLOR, linewidth=0.8, marker="o", markersize=3.5,
+                              label=f"LiDAR, {ep.lidar_rays} rays"))
     return handles
 
 
@@ -88,15 +147,22 @@ class FramePainter:
     """Draws the frames of one episode onto an axes: the artists are built once, `update(t)` moves them.
 
     `humans` (an EllipseCollection, gid "humans") holds one disc per human in human-index order, coloured
-    `VISIBLE_COLOR` or `UNSEEN_COLOR` from the env's visibility mask of the frame.
+    `VISIBLE_COLOR` or `UNSEEN_COLOR` from the env's visibility mask of the frame. The episode's obstacles are
+    `obstacles` (a PolyCollection of the polygons, gid "obstacles") and `walls` (a LineCollection of the wall
+    segments, gid "walls"), None where the episode has none. With `show_rays` (the episode needs LiDAR scans:
+    `env.lidar_rays` > 0) `rays` (a LineCollection, gid "lidar_rays") holds one segment per ray from the robot to
+    its end point and `ray_hits` (gid "lidar_hits") the points where rays hit something.
     """
 
     def __init__(self, ax, ep: Episode, *, trail_steps: int | None = 20, show_legend: bool = True, limits=None,
-                 title: str | None = None):
-        from matplotlib.collections import EllipseCollection, LineCollection
+                 title: str | None = None, show_rays: bool = False):
+        from matplotlib.collections import EllipseCollection, LineCollection, PolyCollection
         from matplotlib.patches import Circle
 
-        self.ax, self.ep, self.trail_steps = ax, ep, trail_steps
+        if show_rays and ep.lidar is None:
+            raise ValueError("show_rays needs LiDAR scans, and this episode's env has none: set env.lidar_rays > 0 "
+                             "(rays per scan) to record them")
+        self.ax, self.ep, self.trail_steps, self.show_rays = ax, ep, trail_steps, bool(show_rays)
         self.dmin = ep.dmin()
         ax.clear()
         x0, x1, y0, y1 = limits or view_limits(ep)
@@ -124,6 +190,23 @@ class FramePainter:
                                              linewidth=1.2, zorder=3))
         (self.goal_star,) = ax.plot(*ep.goal, marker="*", markersize=16, color=GOAL_COLOR, markeredgecolor="black",
                                     markeredgewidth=0.6, zorder=3, linestyle="none")
+        # Static obstacles (drawn with the moving artists, so that every frame stacks them the same way).
+        polygons = [p for p in ep.obstacles if len(p) >= 3]
+        walls = [p for p in ep.obstacles if len(p) == 2]
+        self.obstacles = ax.add_collection(PolyCollection(
+            polygons, facecolors=OBSTACLE_COLOR, edgecolors=OBSTACLE_EDGE, linewidths=1.2, zorder=1.7,
+            gid="obstacles"), autolim=False) if polygons else None
+        self.walls = ax.add_collection(LineCollection(
+            walls, colors=OBSTACLE_EDGE, linewidths=WALL_WIDTH, capstyle="round", zorder=1.7, gid="walls"),
+            autolim=False) if walls else None
+        # LiDAR rays (over the obstacles, under the agents) and their hits.
+        self.rays = self.ray_hits = None
+        if self.show_rays:
+            self.rays = ax.add_collection(LineCollection([], colors=LIDAR_COLOR, linewidths=0.7, zorder=3.5,
+                                                         gid="lidar_rays"), autolim=False)
+            # the hits lie on the humans' edges: drawn over the discs
+            self.ray_hits = ax.scatter(np.zeros(0), np.zeros(0), s=9, color=LIDAR_COLOR, edgecolors="none",
+                                       zorder=9.5, gid="lidar_hits")
         # Trajectories.
         self.trails = ax.add_collection(LineCollection([], colors="#7a7a7a", linewidths=1.0, alpha=0.55, zorder=4),
                                         autolim=False)
@@ -146,13 +229,16 @@ class FramePainter:
         self.caption = ax.text(0.015, 0.985, "", transform=ax.transAxes, va="top", ha="left", fontsize=9.5,
                                family="monospace", zorder=20, bbox=box)
         color = OUTCOME_COLORS.get(ep.outcome, "black")
-        self.banner = ax.text(0.985, 0.985, f"{ep.outcome.upper()} at {ep.duration:.2f} s", transform=ax.transAxes,
-                              va="top", ha="right", fontsize=13, fontweight="bold", color=color, zorder=20,
-                              visible=False, bbox=dict(boxstyle="round,pad=0.35", facecolor="white", alpha=0.9,
-                                                       edgecolor=color))
+        self.banner = ax.text(0.985, 0.985, f"{outcome_label(ep.outcome).upper()} at {ep.duration:.2f} s",
+                              transform=ax.transAxes, va="top", ha="right", fontsize=13, fontweight="bold",
+                              color=color, zorder=20, visible=False,
+                              bbox=dict(boxstyle="round,pad=0.35", facecolor="white", alpha=0.9, edgecolor=color))
         if show_legend:
-            ax.legend(handles=_legend_handles(ep), loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=4,
-                      fontsize=8.5, frameon=False, handlelength=1.6, columnspacing=1.2)
+            handles = _legend_handles(ep, self.show_rays)
+            many = len(handles) > 8  # a third row: set closer, so that it fits the strip below the axes
+            ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=4,
+                      fontsize=8 if many else 8.5, labelspacing=0.3 if many else 0.5, frameon=False,
+                      handlelength=1.6, columnspacing=1.2)
 
     def update(self, t: int):
         """Show state `t` (0 = the reset state, `ep.steps` = the final state); returns the changed artists."""
@@ -194,6 +280,18 @@ class FramePainter:
             self.pred_lines.set_segments([])
             self.pred_dots.set_offsets(np.zeros((0, 2)))
 
+        if self.show_rays:
+            from matplotlib.colors import to_rgba
+
+            ends = ep.lidar_points(t)
+            hit = ep.lidar[t] < ep.sensor_range * (1 - 1e-5)
+            self.rays.set_segments([np.stack([rpos, e]) for e in ends])
+            colors = np.zeros((len(ends), 4))
+            colors[:] = to_rgba(LIDAR_COLOR)
+            colors[:, 3] = np.where(hit, 0.55, 0.15)
+            self.rays.set_color(colors)
+            self.ray_hits.set_offsets(ends[hit].reshape(-1, 2))
+
         vel = ep.robot_vel[t]
         speed = float(np.linalg.norm(vel))
         if speed > 1e-6:
@@ -203,8 +301,11 @@ class FramePainter:
             self.tick.set_data([], [])
 
         n_vis = int(ep.visible[t].sum()) if ep.num_humans else 0
+        d_obs = np.inf if ep.obstacle_dist is None else float(ep.obstacle_dist[t])
         lines = [f"t = {t * ep.dt:5.2f} s   step {t}/{ep.max_steps}",
                  f"visible {n_vis}/{ep.num_humans}   d_min {dmin:.2f} m" + ("  DANGER" if in_danger else "")]
+        if np.isfinite(d_obs):
+            lines.append(f"nearest obstacle {d_obs:.2f} m")
         lines.append(f"r_t = {ep.reward[t - 1]:+.2f}   return {ep.reward[:t].sum():+.2f}" if t > 0 else
                      "r_t =   -     return +0.00")
         self.caption.set_text("\n".join(lines))
@@ -214,11 +315,11 @@ class FramePainter:
 
     @property
     def animated(self) -> list:
-        """The artists `update` changes (plus the goal), in drawing order."""
+        """The artists `update` changes (plus the goal and the obstacles), in drawing order."""
         artists = [self.sensor_fill, self.sensor_edge, self.danger_fill, self.danger_edge, self.goal_ring,
                    self.goal_star, self.trails, self.path, self.humans, self.pred_lines, self.pred_dots, self.robot,
-                   self.tick, self.caption, self.banner]
-        return sorted(artists, key=lambda a: a.get_zorder())
+                   self.tick, self.caption, self.banner, self.obstacles, self.walls, self.rays, self.ray_hits]
+        return sorted((a for a in artists if a is not None), key=lambda a: a.get_zorder())
 
     def render_rgb(self) -> np.ndarray:
         """The current frame as an (H, W, 3) uint8 array (Agg canvas).
@@ -248,8 +349,9 @@ class FramePainter:
 def draw_frame(ax, ep: Episode, t: int, **kwargs) -> FramePainter:
     """Draw state `t` (0 = reset state, `ep.steps` = final state) of `ep` onto `ax` (cleared first).
 
-    Keyword arguments go to `FramePainter` (trail_steps, show_legend, limits, title). To draw many frames, keep
-    the returned painter and call its `update(t)`: that is several times faster than redrawing from scratch.
+    Keyword arguments go to `FramePainter` (trail_steps, show_legend, limits, title, show_rays). To draw many
+    frames, keep the returned painter and call its `update(t)`: that is several times faster than redrawing from
+    scratch.
     """
     painter = FramePainter(ax, ep, **kwargs)
     painter.update(t)
@@ -312,7 +414,7 @@ def plot_reward_terms(ep: Episode, *, title: str | None = None):
     ax_cum.set_ylabel("cumulative reward")
     ax_cum.grid(alpha=0.3)
     ax_cum.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
-    fig.suptitle(title or f"{ep.label}, episode {ep.index}: {ep.outcome} after {ep.duration:.2f} s, "
+    fig.suptitle(title or f"{ep.label}, episode {ep.index}: {outcome_label(ep.outcome)} after {ep.duration:.2f} s, "
                  f"return {ep.ret:+.2f}")
     return fig
 

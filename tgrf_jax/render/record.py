@@ -1,7 +1,8 @@
 """Recording episodes in JAX: a `lax.scan` over the time limit plays a batch of episodes with the same keys and
 step order as `tgrf_jax.evaluate` (so episode i of a render and of an evaluation with the same seed and count are
-the same episode) and returns every state, the robot's visibility mask, the predictions it observed and the
-reward split into its terms, as numpy `Episode`s. Everything after that is host code."""
+the same episode) and returns every state, the robot's visibility mask, the predictions it observed, the reward
+split into its terms and, in environments with static obstacles or a LiDAR, the episode's layout and every scan, as
+numpy `Episode`s. Everything after that is host code."""
 
 from __future__ import annotations
 
@@ -15,9 +16,17 @@ import numpy as np
 class Episode:
     """One recorded episode as numpy arrays. T = `steps`; index 0 of the (T+1)-long arrays is the reset state.
 
-    `visible` is in human-index order (True: within sensor range). `pred_pos` / `pred_mask` are the observation's
-    predicted world positions in the observation's own row order (visible humans first), so only what the robot
-    observed is drawn. Per-step arrays (`reward`, `terms`, `outcomes`) are T long: entry t-1 belongs to step t.
+    `visible` is in human-index order (True: the robot perceives the human: within sensor range and, with
+    `env.occlusion`, not hidden behind an obstacle). `pred_pos` / `pred_mask` are the observation's predicted world
+    positions in the observation's own row order (visible humans first), so only what the robot observed is drawn.
+    Per-step arrays (`reward`, `terms`, `outcomes`) are T long: entry t-1 belongs to step t.
+
+    `obstacles` is the episode's static layout (fixed for the episode, taken from its reset state, so nothing of a
+    later episode leaks in): one (V_i, 2) array of world-frame vertices per used obstacle slot, counter-clockwise;
+    2 vertices are a wall segment. `lidar` holds the LiDAR scan of every state (ray k at `robot_heading[t] +
+    2 pi k / R` counter-clockwise, ranges capped at `sensor_range`), None when the env has no LiDAR
+    (`env.lidar_rays: 0`). `obstacle_dist` is the robot's edge-to-edge distance to the nearest obstacle in every
+    state (negative: overlapping one), None without obstacles.
     """
 
     label: str
@@ -40,6 +49,11 @@ class Episode:
     d_disc: float
     goal_tolerance: float
     max_steps: int
+    robot_heading: np.ndarray | None = None  # (T+1,) rad, the robot's heading (pi/2 throughout for holonomic robots)
+    obstacles: list = dataclasses.field(default_factory=list)  # [(V_i, 2)] the episode's obstacles, world frame
+    lidar: np.ndarray | None = None  # (T+1, R) LiDAR ranges (m) of every state, None without a LiDAR
+    obstacle_dist: np.ndarray | None = None  # (T+1,) robot edge distance to the nearest obstacle, None without
+    occlusion: bool = False  # env.occlusion: humans hidden behind obstacles count as not visible
 
     @property
     def steps(self) -> int:
@@ -48,6 +62,20 @@ class Episode:
     @property
     def num_humans(self) -> int:
         return self.human_pos.shape[1]
+
+    @property
+    def lidar_rays(self) -> int:
+        """Rays per scan (0: no LiDAR)."""
+        return 0 if self.lidar is None else self.lidar.shape[1]
+
+    def lidar_points(self, t: int) -> np.ndarray:
+        """World-frame end points (R, 2) of state t's rays: the hit points, or the range's end where nothing is hit."""
+        if self.lidar is None:
+            raise ValueError("this episode has no LiDAR scans (its env has env.lidar_rays: 0)")
+        ranges = self.lidar[t]
+        heading = np.pi / 2 if self.robot_heading is None else self.robot_heading[t]
+        angle = heading + 2 * np.pi * np.arange(len(ranges)) / len(ranges)
+        return self.robot_pos[t] + ranges[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
 
     @property
     def outcome(self) -> str:
@@ -77,19 +105,32 @@ class Episode:
 
 
 def _record(env, policy, key, n_episodes: int, params, n_steps: int):
-    """Pure: play `n_episodes` episodes for `n_steps` steps, freezing each after it ends; returns stacked outputs."""
+    """Pure: play `n_episodes` episodes for `n_steps` steps, freezing each after it ends; returns stacked outputs.
+
+    `env.step_env` never resets, and an ended episode's state is frozen, so no later episode enters a recording;
+    the obstacles are taken once, from the reset states (`first`)."""
     import jax
     import jax.numpy as jnp
 
-    from tgrf_jax.env import sensing
+    from tgrf_jax.env import obstacles as obstacles_lib
+
+    has_obstacles = env.config.obstacle_slots > 0
+    has_lidar = env.config.lidar_rays > 0
 
     def snapshot(obs, state):
-        visible = jax.vmap(sensing.visible_mask, in_axes=(0, None))(state, params)
-        return dict(
+        visible = jax.vmap(env.visible, in_axes=(0, None))(state, params)
+        out = dict(
             robot_pos=state.robot.pos, robot_vel=state.robot.vel, goal=state.robot.goal,
+            robot_heading=state.robot.heading,
             human_pos=state.humans.pos, human_radius=state.humans.radius, visible=visible,
             obs_humans=obs.humans, obs_mask=obs.human_mask, active=state.humans.active,
         )
+        if has_lidar:
+            out["lidar"] = obs.lidar
+        if has_obstacles:
+            out["obstacle_dist"] = jax.vmap(obstacles_lib.clearance)(state.robot.pos, state.obstacles) \
+                - params.robot_radius
+        return out
 
     def step_one(key, state, action):
         k_step, _ = jax.random.split(key)  # as env.step splits it, so trajectories match evaluate()
@@ -114,6 +155,8 @@ def _record(env, policy, key, n_episodes: int, params, n_steps: int):
     k_reset, k_loop = jax.random.split(key)
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, n_episodes), params)
     first = snapshot(obs, state)
+    first["obstacle_vertices"] = state.obstacles.vertices
+    first["obstacle_counts"] = state.obstacles.num_vertices
     loop = (k_loop, obs, state, policy.initialize_carry(n_episodes), jnp.ones(n_episodes, bool))
     _, outs = jax.lax.scan(body, loop, jnp.arange(n_steps))
     return first, outs
@@ -127,8 +170,10 @@ def _record_jit():
 
 
 # Episode steps recorded at once (every state of every episode of a batch stays in memory until it is drawn: about
-# 1.5 kB per step with 20 humans and predictions, so some 300 MB).
+# 1.5 kB per step with 20 humans and predictions, so some 300 MB). A LiDAR scan adds 4 bytes per ray and step, so
+# envs with one record proportionally fewer steps at once.
 RECORD_STEPS = 200_000
+_STEP_BYTES = 1500
 
 
 def eval_key(seed: int, batch: int = 0):
@@ -139,12 +184,14 @@ def eval_key(seed: int, batch: int = 0):
     return jax.random.fold_in(jax.random.key(seed), batch)
 
 
-def episodes_per_batch(params) -> int:
+def episodes_per_batch(params, lidar_rays: int = 0) -> int:
     """Episodes recorded at once: `evaluate`'s batch (so a render replays the evaluation's episodes), fewer where
-    episodes are so long that a batch would exceed `RECORD_STEPS` steps."""
+    episodes are so long that a batch would exceed `RECORD_STEPS` steps (fewer still with a LiDAR of `lidar_rays`
+    rays: its scans are stored too)."""
     from tgrf_jax.evaluate import MAX_BATCH
 
-    return max(1, min(MAX_BATCH, RECORD_STEPS // episode_steps(params)))
+    steps = RECORD_STEPS * _STEP_BYTES // (_STEP_BYTES + 4 * int(lidar_rays))
+    return max(1, min(MAX_BATCH, steps // episode_steps(params)))
 
 
 def episode_steps(params) -> int:
@@ -155,8 +202,9 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
     """Play `n_episodes` episodes of `policy` in `env` (one jitted scan, batched) and return them as `Episode`s.
 
     `policy` follows the `tgrf_jax.policies` interface (baselines or `LearnedPolicy`). Each episode runs until it
-    ends (success, collision or the time limit). Keys and step order are those of `tgrf_jax.evaluate.run_episodes`,
-    so the same key gives the same episodes; use `eval_key(seed)` to replay what `evaluate` / `tgrf-eval` played.
+    ends (success, a collision with a human or an obstacle, or the time limit). Keys and step order are those of
+    `tgrf_jax.evaluate.run_episodes`, so the same key gives the same episodes; use `eval_key(seed)` to replay what
+    `evaluate` / `tgrf-eval` played.
     """
     import jax
 
@@ -167,6 +215,7 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
     first, outs = jax.device_get(_record_jit()(env, policy, key, int(n_episodes), params, n_steps))
     label = label or getattr(policy, "name", None) or type(policy).__name__
     k = env.config.pred_horizon if env.config.uses_predictions else 0
+    occlusion = bool(env.config.occlusion and env.config.obstacle_slots > 0)
     episodes = []
     for b in range(int(n_episodes)):
         steps = int(outs["alive"][:, b].sum())
@@ -180,6 +229,8 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
         n = obs_humans.shape[1]
         obs_pos = obs_humans[:, :, :2] + robot_pos[:, None]
         pred = obs_humans[:, :, 2:].reshape(steps + 1, n, k, 2) + robot_pos[:, None, None] if k else None
+        counts = first["obstacle_counts"][b]
+        layout = [np.array(first["obstacle_vertices"][b, m, :c], np.float64) for m, c in enumerate(counts) if c >= 2]
         episodes.append(Episode(
             label=label, index=b, robot_pos=robot_pos, robot_vel=seq("robot_vel"), goal=np.asarray(first["goal"][b]),
             human_pos=humans_seq("human_pos"), human_radius=humans_seq("human_radius"),
@@ -191,6 +242,10 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
             outcomes=np.asarray(outs["outcome"][:steps, b]),
             dt=float(params.dt), robot_radius=float(params.robot_radius), sensor_range=float(params.sensor_range),
             d_disc=float(params.reward.d_disc), goal_tolerance=float(params.goal_tolerance), max_steps=n_steps,
+            robot_heading=np.asarray(seq("robot_heading"), np.float64), obstacles=layout,
+            lidar=np.asarray(seq("lidar"), np.float64) if "lidar" in first else None,
+            obstacle_dist=np.asarray(seq("obstacle_dist"), np.float64) if "obstacle_dist" in first else None,
+            occlusion=occlusion,
         ))
     return episodes
 

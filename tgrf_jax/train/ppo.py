@@ -32,6 +32,7 @@ from flax import struct
 from tgrf_jax.config import PPOConfig, TrainConfig
 from tgrf_jax.env import (
     COLLISION,
+    OBSTACLE_COLLISION,
     SUCCESS,
     TIMEOUT,
     CrowdNavEnv,
@@ -400,7 +401,8 @@ class Trainer:
             outcome = info.outcome
             ep = dict(
                 episodes=jnp.sum(done), return_sum=jnp.sum(jnp.where(done, ep_return, 0.0)),
-                successes=jnp.sum(done & (outcome == SUCCESS)), collisions=jnp.sum(done & (outcome == COLLISION)),
+                successes=jnp.sum(done & (outcome == SUCCESS)),
+                collisions=jnp.sum(done & ((outcome == COLLISION) | (outcome == OBSTACLE_COLLISION))),
                 timeouts=jnp.sum(done & (outcome == TIMEOUT)),
             )
             ep_return = jnp.where(done, 0.0, ep_return)

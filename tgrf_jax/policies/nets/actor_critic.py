@@ -22,10 +22,11 @@ import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
+from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.env.types import Obs
 from tgrf_jax.policies.nets.common import count_params, reset_carry
 from tgrf_jax.policies.nets.dsrnn import DSRNN_SIZES, DSRNNNet
-from tgrf_jax.policies.nets.frames import FRAMES, action_to_world, to_goal_frame
+from tgrf_jax.policies.nets.frames import FRAMES, action_to_world, to_goal_frame, to_world_frame
 from tgrf_jax.policies.nets.hh_attn import HH_ATTN_SIZES, HHAttnNet
 from tgrf_jax.policies.nets.mlp import MLP_SIZES, MLPNet
 
@@ -33,8 +34,8 @@ NETWORK_NAMES = ("hh_attn", "dsrnn", "mlp")
 NETWORK_SIZES = ("paper", "small")
 
 
-def dummy_obs(batch_shape, num_humans: int, obs_human_dim: int) -> Obs:
-    """All-zeros observation batch (no human visible) with the given leading shape."""
+def dummy_obs(batch_shape, num_humans: int, obs_human_dim: int, lidar_rays: int = 0) -> Obs:
+    """All-zeros observation batch (no human visible, no obstacle) with the given leading shape."""
     batch_shape = tuple(batch_shape) if isinstance(batch_shape, (tuple, list)) else (int(batch_shape),)
     z = lambda *s: jnp.zeros(batch_shape + s, jnp.float32)  # noqa: E731
     return Obs(
@@ -44,6 +45,8 @@ def dummy_obs(batch_shape, num_humans: int, obs_human_dim: int) -> Obs:
         human_mask=jnp.zeros(batch_shape + (num_humans,), bool),
         human_vel=z(num_humans, 2),
         human_radius=z(num_humans),
+        lidar=z(lidar_rays),
+        obstacles=Obstacles(z(0, 2, 2), jnp.zeros(batch_shape + (0,), jnp.int32)),
     )
 
 
@@ -51,7 +54,8 @@ class ActorCritic:
     """A policy module plus the recurrent PPO interface. Stateless: parameters are passed explicitly."""
 
     def __init__(self, name: str, size: str, module: nn.Module, obs_human_dim: int, num_humans: int, action_dim: int,
-                 frame: str = "world", rotate_action: bool = False, init_log_std: float = 0.0):
+                 frame: str = "world", rotate_action: bool = False, init_log_std: float = 0.0, lidar_rays: int = 0,
+                 lidar_range: float = 5.0):
         self.name = name
         self.size = size
         self.module = module
@@ -61,17 +65,20 @@ class ActorCritic:
         self.frame = frame
         self.rotate_action = rotate_action
         self.init_log_std = init_log_std
+        self.lidar_rays = lidar_rays
+        self.lidar_range = lidar_range
 
     def __repr__(self):
+        lidar = f", lidar_rays={self.lidar_rays}" if self.lidar_rays else ""
         return (
             f"ActorCritic(name={self.name!r}, size={self.size!r}, obs_human_dim={self.obs_human_dim}, "
-            f"num_humans={self.num_humans}, action_dim={self.action_dim}, frame={self.frame!r})"
+            f"num_humans={self.num_humans}, action_dim={self.action_dim}, frame={self.frame!r}{lidar})"
         )
 
     # ------------------------------------------------------------------------------------------------ state
 
     def dummy_obs(self, batch_size: int = 1) -> Obs:
-        return dummy_obs(batch_size, self.num_humans, self.obs_human_dim)
+        return dummy_obs(batch_size, self.num_humans, self.obs_human_dim, self.lidar_rays)
 
     def initialize_carry(self, batch_size: int):
         """Zero recurrent state for `batch_size` environments (a dict of arrays with leading axis B)."""
@@ -100,6 +107,14 @@ class ActorCritic:
                 f"{self}: expected obs.humans of shape {('...',) * batch_ndim + (self.num_humans, self.obs_human_dim)}"
                 f" with {batch_ndim} batch axes, got {hs}"
             )
+        ls = obs.lidar.shape
+        if len(ls) != batch_ndim + 1 or ls[-1] != self.lidar_rays:
+            what = (f"a {self.lidar_rays}-ray LiDAR scan" if self.lidar_rays
+                    else "no LiDAR scan (env.lidar_rays = 0)")
+            raise ValueError(
+                f"{self}: expects {what}: obs.lidar of shape {('...',) * batch_ndim + (self.lidar_rays,)} with "
+                f"{batch_ndim} batch axes, got {ls}"
+            )
 
     def _step(self, params, carry, obs: Obs, resets):
         if resets is not None:
@@ -109,7 +124,11 @@ class ActorCritic:
         return carry, (self._action_to_world(mean, axes), log_std, value)
 
     def _to_frame(self, obs: Obs):
-        return (obs, None) if self.frame == "world" else to_goal_frame(obs)
+        if self.lidar_rays:
+            # clipped before the frame's rotation interpolates between rays: a range beyond the sensor's (a real
+            # scanner's) reads exactly as the sensor range, as in the env
+            obs = obs.replace(lidar=jnp.clip(obs.lidar.astype(jnp.float32), 0.0, self.lidar_range))
+        return (to_world_frame(obs), None) if self.frame == "world" else to_goal_frame(obs)
 
     def _action_to_world(self, mean, axes):
         return action_to_world(mean, axes) if self.rotate_action else mean
@@ -154,7 +173,8 @@ class ActorCritic:
 
 
 def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, action_dim: int = 2, *,
-                 frame: str = "world", rotate_action: bool = False, init_log_std: float = 0.0) -> ActorCritic:
+                 frame: str = "world", rotate_action: bool = False, init_log_std: float = 0.0, lidar_rays: int = 0,
+                 lidar_range: float = 5.0) -> ActorCritic:
     """Build a policy: name in ("hh_attn", "dsrnn", "mlp"), size in ("paper", "small").
 
     obs_human_dim: D, features per human row (2 without predictions, 2 (K + 1) with K predicted positions).
@@ -162,6 +182,10 @@ def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, acti
     frame: "world" (the reference's inputs) or "goal" (inputs re-expressed in the robot-centred, goal-aligned frame;
     see `tgrf_jax.policies.nets.frames`). rotate_action: the action is a planar velocity to rotate back to the world frame
     (holonomic robots; a unicycle's (dv, dtheta) is frame-free). init_log_std: initial value of the log-std.
+    lidar_rays: R, rays of the 2-D LiDAR scan the policy reads (`Obs.lidar`, body frame; 0: none, the reference
+    networks with exactly their parameters). HH Attn and DS-RNN encode it with a `LidarEncoder` (1-D circular
+    convolutions, then a dense layer) whose output joins the robot's GRU input; the MLP appends the scaled ranges
+    to its input. lidar_range: metres that scale the ranges to [0, 1] (the env's sensor range).
     """
     if frame not in FRAMES:
         raise ValueError(f"unknown frame {frame!r}; valid frames: {', '.join(FRAMES)}")
@@ -169,16 +193,25 @@ def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, acti
         raise ValueError(f"unknown network {name!r}; valid names: {', '.join(NETWORK_NAMES)}")
     if size not in NETWORK_SIZES:
         raise ValueError(f"unknown network size {size!r}; valid sizes: {', '.join(NETWORK_SIZES)}")
+    if isinstance(lidar_rays, bool) or int(lidar_rays) != lidar_rays or lidar_rays < 0:
+        raise ValueError(f"lidar_rays = {lidar_rays!r} must be a whole number >= 0 (0: no LiDAR)")
+    lidar_rays = int(lidar_rays)
+    if lidar_rays and not lidar_range > 0:
+        raise ValueError(f"lidar_range = {lidar_range!r} must be > 0 m (the range that scales the scan to [0, 1])")
+    lidar_range = float(lidar_range)
     if obs_human_dim < 2 or num_humans < 0 or action_dim < 1:
         raise ValueError(
             "need obs_human_dim >= 2, num_humans >= 0, action_dim >= 1; "
             f"got {obs_human_dim}, {num_humans}, {action_dim}"
         )
     if name == "hh_attn":
-        module = HHAttnNet(HH_ATTN_SIZES[size], obs_human_dim=obs_human_dim, action_dim=action_dim)
+        module = HHAttnNet(HH_ATTN_SIZES[size], obs_human_dim=obs_human_dim, action_dim=action_dim,
+                           lidar_rays=lidar_rays, lidar_range=lidar_range)
     elif name == "dsrnn":
-        module = DSRNNNet(DSRNN_SIZES[size], num_humans=num_humans, action_dim=action_dim)
+        module = DSRNNNet(DSRNN_SIZES[size], num_humans=num_humans, action_dim=action_dim, lidar_rays=lidar_rays,
+                          lidar_range=lidar_range)
     else:
-        module = MLPNet(MLP_SIZES[size], action_dim=action_dim)
+        module = MLPNet(MLP_SIZES[size], action_dim=action_dim, lidar_range=lidar_range)
     return ActorCritic(name, size, module, obs_human_dim, num_humans, action_dim, frame=frame,
-                       rotate_action=rotate_action and frame == "goal", init_log_std=init_log_std)
+                       rotate_action=rotate_action and frame == "goal", init_log_std=init_log_std,
+                       lidar_rays=lidar_rays, lidar_range=lidar_range)

@@ -10,10 +10,14 @@ Initialisers follow the reference (CrowdNav++ / TGRF, PyTorch):
   biases, as `RNNBase.__init__` sets them;
 * `nn.MultiheadAttention` uses a Xavier-uniform packed input projection with zero bias and a default-initialised
   output projection with zero bias.
+
+`LidarEncoder` (the scan branch of HH Attn and DS-RNN, no counterpart in the reference) uses PyTorch's defaults too:
+`nn.Conv1d` and `nn.Linear` draw weight and bias from U(-1/sqrt(fan_in), 1/sqrt(fan_in)).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable, Sequence
 
@@ -164,6 +168,69 @@ def robot_human_attention(
     w = masked_softmax(scores, mask)
     values = jnp.where(mask[..., None], values, 0.0)
     return jnp.sum(w[..., None] * values, axis=-2)
+
+
+# ---------------------------------------------------------------------------------------------------------- LiDAR
+
+
+def scale_scan(ranges: jnp.ndarray, max_range: float) -> jnp.ndarray:
+    """LiDAR ranges in metres -> [0, 1] (0: contact, 1: nothing within `max_range`). Values beyond the range (a
+    sensor reporting further than the env's) are clipped to 1, negative ones to 0."""
+    return jnp.clip(ranges.astype(jnp.float32) / max_range, 0.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class LidarEncoderSize:
+    """Scan encoder: 1-D convolutions (`channels[i]` filters of width `kernel`, stride `stride`, circular padding,
+    ReLU) over the R rays, then one dense layer (ReLU) to `embed` features."""
+
+    channels: tuple = (8, 8)
+    kernel: int = 5
+    stride: int = 2
+    embed: int = 32
+
+    def conv_length(self, rays: int) -> int:
+        """Rays left after the convolutions (each keeps ceil(L / stride) of L)."""
+        for _ in self.channels:
+            rays = -(-rays // self.stride)
+        return rays
+
+    def num_params(self, rays: int) -> int:
+        n, c_in = 0, 1
+        for c in self.channels:
+            n += c_in * self.kernel * c + c
+            c_in = c
+        return n + (self.conv_length(rays) * c_in + 1) * self.embed
+
+
+class LidarEncoder(nn.Module):
+    """A 2-D LiDAR scan (..., R) in metres -> an embedding (..., embed), as the obstacle branch of HEIGHT (Liu et
+    al. 2024) beside its human attention.
+
+    The ranges are scaled to [0, 1] by `max_range` (`scale_scan`), then `size.channels` 1-D convolutions with
+    circular padding (the scan is a ring: ray R-1 neighbours ray 0, so no seam at ray 0) and stride `size.stride`
+    (each halves the angular resolution and doubles the channels' field of view: two layers of width 5 see 13
+    neighbouring rays), ReLU, and a dense layer over the flattened feature map (it keeps each sector's direction,
+    which a pooling would lose), ReLU. The scan arrives in the policy's frame (`frames.py`: world or goal frame),
+    so the direction of a feature means the same in every situation. Parameters grow with R only in the dense
+    layer: ceil(R / stride^layers) x channels[-1] x embed.
+    """
+
+    size: LidarEncoderSize
+    max_range: float
+
+    @nn.compact
+    def __call__(self, ranges: jnp.ndarray) -> jnp.ndarray:
+        s = self.size
+        x = scale_scan(ranges, self.max_range)[..., None]  # (..., R, 1)
+        c_in = 1
+        for i, c in enumerate(s.channels):
+            init = torch_linear_init(c_in * s.kernel)
+            x = nn.relu(nn.Conv(c, (s.kernel,), strides=(s.stride,), padding="CIRCULAR", kernel_init=init,
+                                bias_init=init, name=f"conv_{i}")(x))
+            c_in = c
+        x = x.reshape(x.shape[:-2] + (x.shape[-2] * x.shape[-1],))
+        return nn.relu(torch_dense(s.embed, x.shape[-1], name="embed")(x))
 
 
 # ---------------------------------------------------------------------------------------------------------- heads

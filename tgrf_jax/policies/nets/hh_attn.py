@@ -14,6 +14,24 @@ One step, per batch element:
     x       = ReLU(Linear(R, e))(r_emb) ‖ ReLU(Linear(F, e))(attn)  -> GRU(2e, G) -> Linear(G, O)
     heads   = actor / critic: 2 x (Linear(O, O) + tanh); mean Linear(O, 2); value Linear(O, 1)
 
+With a 2-D LiDAR (lidar_rays = R > 0; not in the reference) a scan branch runs beside the human attention, as
+the obstacle branch of HEIGHT (Liu et al. 2024):
+
+    scan    = lidar (R) in the policy's frame (ray 0 along world +x, or at the goal: `frames.rotate_scan`),
+              clipped to the sensor range and scaled to [0, 1]
+    c1      = ReLU(Conv1d(1 -> C1, width 5, stride 2, circular padding))          ceil(R / 2) x C1
+    c2      = ReLU(Conv1d(C1 -> C2, width 5, stride 2, circular padding))         ceil(R / 4) x C2
+    lid     = ReLU(Linear(ceil(R / 4) C2, L)(flatten(c2)))
+    x       = ReLU(Linear(R, e))(r_emb) ‖ ReLU(Linear(F, e))(attn) ‖ lid  -> GRU(2e + L, G) -> ...
+
+C1 = C2 = 8, L = e = 32 (small); C1 = C2 = 16, L = e = 64 (paper). The embedding joins the GRU's input, beside the
+robot and the attended humans, so the robot's memory integrates the scan over time (it sees walls drift by and
+scan returns move) and the encoder stays in `encode`, run once over a whole sequence. With R = 0 the branch
+does not exist: parameters and outputs are exactly the reference network's. Parameters added: the encoder
+(48 + 328 + (8 ceil(R / 4) + 1) 32 small; 96 + 1296 + (16 ceil(R / 4) + 1) 64 paper) and 3 G L in the GRU's
+input weights: hh_attn small 69,925 -> 78,781 with 36 rays, 99,517 with 360; paper 2,502,021 -> 2,537,269 /
+2,620,213 (D = 12, N = 20).
+
 Quirk kept from the reference: the robot–human attention score is *multiplied* by num_humans / sqrt(a)
 (`temperature = num_edges / np.sqrt(attention_size)`, then `attn * temperature`), i.e. x 2.5 at 20 humans and
 a = 64, instead of divided by sqrt(a). It sharpens the softmax as the (padded) number of humans grows.
@@ -56,6 +74,8 @@ from flax import linen as nn
 
 from tgrf_jax.policies.nets.common import (
     ActorCriticHeads,
+    LidarEncoder,
+    LidarEncoderSize,
     MultiHeadAttention,
     TorchGRUCell,
     masked_humans,
@@ -90,17 +110,19 @@ class HHAttnSize:
     # The reference follows the attention's output projection with `spatial_linear`, again two linear maps in a
     # row; False drops the first.
     hh_out_projection: bool = True
+    # The scan encoder, built only for a policy with a LiDAR (lidar_rays > 0).
+    lidar: LidarEncoderSize = LidarEncoderSize()
 
 
 HH_ATTN_SIZES = {
     "paper": HHAttnSize(
         robot_embed=256, hh_embed_hidden=128, hh_attn=512, hh_heads=8, human_embed=256, rh_attn=64, node_embed=64,
-        gru=128, output=256, head_hidden=256,
+        gru=128, output=256, head_hidden=256, lidar=LidarEncoderSize(channels=(16, 16), embed=64),
     ),
     "small": HHAttnSize(
         robot_embed=64, hh_embed_hidden=32, hh_attn=64, hh_heads=2, human_embed=64, rh_attn=32, node_embed=32,
         gru=64, output=64, head_hidden=64, qkv_pre_projection=False, max_humans=16, hh_qk_head_dim=16,
-        hh_out_projection=False,
+        hh_out_projection=False, lidar=LidarEncoderSize(channels=(8, 8), embed=32),
     ),
 }
 
@@ -138,6 +160,8 @@ class HHAttnNet(nn.Module):
     size: HHAttnSize
     obs_human_dim: int
     action_dim: int = 2
+    lidar_rays: int = 0  # R, rays of the scan (0: no scan, no encoder: the reference network)
+    lidar_range: float = 5.0  # metres that scale the ranges to [0, 1] (the env's sensor range)
 
     def initialize_carry(self, batch_size: int):
         return {"node": jnp.zeros((batch_size, self.size.gru), jnp.float32)}
@@ -158,12 +182,14 @@ class HHAttnNet(nn.Module):
         self.rh_key = KeyIntoQuery(s.rh_attn, s.human_embed)
         self.node_encoder = torch_dense(s.node_embed, s.robot_embed)
         self.node_attn_embed = torch_dense(s.node_embed, s.human_embed)
+        if self.lidar_rays > 0:
+            self.lidar_encoder = LidarEncoder(s.lidar, self.lidar_range)
         self.node_gru = TorchGRUCell(s.gru)
         self.node_output = torch_dense(s.output, s.gru)
         self.heads = ActorCriticHeads((s.head_hidden, s.head_hidden), self.action_dim)
 
     def encode(self, obs):
-        """Observation (any leading shape) -> GRU input (..., 2e)."""
+        """Observation (any leading shape) -> GRU input (..., 2e), (..., 2e + L) with a scan."""
         s = self.size
         mask = obs.human_mask.astype(bool)
         num_humans = obs.humans.shape[-2]  # the attention temperature keeps the env's N (reference quirk)
@@ -188,7 +214,9 @@ class HHAttnNet(nn.Module):
                                      scale=num_humans / math.sqrt(s.rh_attn))
         enc = nn.relu(self.node_encoder(r_emb))
         att_emb = nn.relu(self.node_attn_embed(attn))
-        return jnp.concatenate([enc, att_emb], axis=-1)
+        if self.lidar_rays == 0:
+            return jnp.concatenate([enc, att_emb], axis=-1)
+        return jnp.concatenate([enc, att_emb, self.lidar_encoder(obs.lidar)], axis=-1)
 
     def recur(self, carry, x):
         """(carry, GRU input) -> (new carry, decoder input)."""

@@ -1,0 +1,127 @@
+"""Static obstacles in the env: scenarios that draw layouts, the fixed layout of env.obstacles, collisions with
+obstacles as an outcome of their own, occlusion, and the LiDAR in the observation."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tgrf_jax.config import OBSTACLE_SCENARIOS, ConfigError, EnvConfig
+from tgrf_jax.env import OBSTACLE_COLLISION, CrowdNavEnv
+from tgrf_jax.env import obstacles as obstacles_lib
+
+# Social Force humans keep these tests independent of the ORCA solver's obstacle lines (tested on their own).
+SF = dict(human_policy="social_force")
+
+
+@pytest.fixture(scope="module", params=OBSTACLE_SCENARIOS)
+def scenario_resets(request):
+    env = CrowdNavEnv(dict(scenario=request.param, **SF))
+    obs, state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(7), 256))
+    return request.param, env, obs, state
+
+
+def test_scenario_layouts_keep_starts_goals_and_spawns_out_of_obstacles(scenario_resets):
+    name, env, obs, state = scenario_resets
+    p = env.default_params
+    clear = jax.vmap(obstacles_lib.clearance)
+    assert np.all(np.asarray(state.obstacles.num_vertices).sum(-1) > 0), f"{name}: an episode without obstacles"
+    robot_room = np.asarray(clear(jnp.stack([state.robot.pos, state.robot.goal], 1), state.obstacles))
+    assert robot_room.min() >= float(p.robot_radius), f"{name}: robot start/goal {robot_room.min():.3f} m from a wall"
+    humans = np.asarray(clear(state.humans.pos, state.obstacles)) - np.asarray(state.humans.radius)
+    active = np.asarray(state.humans.active)
+    assert np.mean(humans[active] >= 0.0) >= 0.99, f"{name}: {np.mean(humans[active] < 0):.2%} humans in a wall"
+    assert int(np.asarray(state.obstacles_dropped).sum()) == 0  # the scenarios never need the fallback
+
+
+def test_scenario_layouts_vary_between_episodes(scenario_resets):
+    name, env, obs, state = scenario_resets
+    vertices = np.asarray(state.obstacles.vertices)
+    assert len({v.tobytes() for v in vertices}) > 100, f"{name}: the layout is (almost) always the same"
+
+
+def test_open_space_env_has_no_obstacle_slots_and_no_scan():
+    env = CrowdNavEnv(dict(num_humans=5))
+    obs, state = env.reset(jax.random.key(0))
+    assert state.obstacles.num_vertices.shape == (0,) and obs.lidar.shape == (0,)
+    assert env.config.obstacle_slots == 0
+
+
+def _wall_env(**extra):
+    """The robot drives up the y axis into a wall across x = [-3, 3] at y = -4 (no humans)."""
+    return CrowdNavEnv(dict(num_humans=0, predictor="none", scenario="frontal_approach",
+                            obstacles=[[[3.0, -4.0], [-3.0, -4.0]]], **extra))
+
+
+def test_driving_into_a_wall_is_an_obstacle_collision():
+    env = _wall_env()
+    obs, state = env.reset(jax.random.key(0))
+    step = jax.jit(lambda k, s, a: env.step_env(k, s, a, env.default_params))
+    outcome = 0
+    for t in range(40):
+        obs, state, reward, terminated, truncated, info = step(jax.random.key(t), state, jnp.array([0.0, 1.0]))
+        if terminated:
+            outcome = int(info.outcome)
+            break
+    assert outcome == OBSTACLE_COLLISION
+    # contact when the robot's disc reaches the wall: start at y = -6, wall at -4, radius 0.3, 0.25 m per step
+    assert t + 1 == int(np.ceil((2.0 - 0.3) / 0.25))
+    assert float(reward) == pytest.approx(float(env.default_params.reward.r_col))
+
+
+def test_a_fixed_layout_on_the_robot_start_is_dropped_and_counted():
+    # a box around the lane robots' start (0, -6): removed in every episode, never a robot inside a wall
+    box = [[-1.0, -7.0], [1.0, -7.0], [1.0, -5.0], [-1.0, -5.0]]
+    env = CrowdNavEnv(dict(num_humans=0, predictor="none", scenario="frontal_approach", obstacles=[box]))
+    obs, state = jax.vmap(env.reset)(jax.random.split(jax.random.key(0), 8))
+    assert np.all(np.asarray(state.obstacles.num_vertices) == 0)
+    assert np.all(np.asarray(state.obstacles_dropped) == 1)
+
+
+def test_lidar_sees_the_wall_at_its_distance():
+    env = _wall_env(lidar_rays=4)
+    obs, state = env.reset(jax.random.key(0))
+    # holonomic robots face +y (heading pi/2): ray 0 straight at the wall 2 m ahead, ray 2 away from it
+    start = np.asarray(state.robot.pos)
+    assert float(obs.lidar[0]) == pytest.approx(abs(-4.0 - start[1]), abs=1e-5)
+    assert float(obs.lidar[2]) == pytest.approx(float(env.default_params.sensor_range))
+
+
+def test_occlusion_hides_a_human_behind_a_wall():
+    from helpers import hand_state
+
+    for occlusion, seen in ((False, 1), (True, 0)):
+        env = CrowdNavEnv(dict(num_humans=1, predictor="none", occlusion=occlusion,
+                               obstacles=[[[-2.0, 1.0], [2.0, 1.0]]]))
+        state = hand_state(robot_pos=[0.0, 0.0], robot_goal=[0.0, 5.0], human_pos=[[0.0, 2.5]])
+        state = state.replace(obstacles=obstacles_lib.from_polygons([[[-2.0, 1.0], [2.0, 1.0]]]))
+        obs = env._observe(state, env.default_params, None, env.visible(state, env.default_params))
+        assert int(obs.human_mask.sum()) == seen
+
+
+def test_mix_with_obstacle_scenarios_draws_both_kinds():
+    env = CrowdNavEnv(dict(scenario="mix", mix_scenarios=["circle_crossing", "doorway"], num_humans=4, **SF))
+    obs, state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(3), 64))
+    with_walls = np.asarray(state.obstacles.num_vertices).sum(-1) > 0
+    from tgrf_jax.config import SCENARIOS
+    door = np.asarray(state.scenario) == SCENARIOS.index("doorway")
+    assert 0 < door.sum() < 64 and np.array_equal(with_walls, door)
+
+
+@pytest.mark.parametrize("env, error", [
+    (dict(obstacles=[[[0, 0], [1, 1], [1, 0]]]), r"env.obstacles\[0\] = .* is clockwise"),
+    (dict(obstacles=[[[0, 0]]]), r"env.obstacles\[0\] = .* has 1 vertices"),
+    (dict(obstacles=[[[0, 0], [float("nan"), 1]]]), r"env.obstacles\[0\] = .* has non-finite coordinates"),
+    (dict(obstacles=[[[0, 0], [2, 0], [0, 2], [2, 2]]]), r"env.obstacles\[0\] = .* intersects itself"),
+    (dict(lidar_rays=100000), r"env.lidar_rays = 100000 is out of range"),
+    (dict(lidar_rays=-1), r"env.lidar_rays = -1 is out of range"),
+    (dict(scenario="mix", mix_scenarios=["corridor", "corridor"]), r"env.mix_scenarios"),
+    (dict(scenario="mix", mix_scenarios=["hallway"]), r"env.mix_scenarios\[0\] = 'hallway' is not a scenario"),
+    (dict(scenario="mix", mix_scenarios=["corridor", "doorway"], scenario_weights=[1, 1, 1]),
+     r"env.scenario_weights has 3 value\(s\); allowed: 2"),
+])
+def test_bad_obstacle_settings_are_config_errors(env, error):
+    with pytest.raises(ConfigError, match=error):
+        EnvConfig(**env)
