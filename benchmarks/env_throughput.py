@@ -145,7 +145,8 @@ def breakdown(policy: str, num_humans: int, batch: int, repeats: int, extra: dic
     actions = jax.vmap(StraightPolicy.action)(obs)
     pieces = {
         "human_policy": (lambda s: humans_lib.human_velocities(s.humans, None, params, env.config,
-                                                               s.orca_neighbor_dist, s.obstacles), (state,)),
+                                                               s.orca_neighbor_dist, s.obstacles,
+                                                               s.obstacle_table), (state,)),
         "reset": (lambda k: env.reset(k, params), (keys,)),
         "step_without_reset": (lambda k, s, a: env.step_env(k, s, a, params), (keys, state, actions)),
         "step_with_auto_reset": (lambda k, s, a: env.step(k, s, a, params), (keys, state, actions)),

@@ -303,6 +303,33 @@ def test_jit_vmap_per_scene_obstacles_match_per_scene_calls():
         assert np.mean(np.linalg.norm(g - ref, axis=-1) <= TOL) >= 0.95
 
 
+def test_processed_obstacles_match_the_polygons():
+    """process_obstacles once (vmapped, in its own program), then solve with the table: the polygons' results."""
+    cs = cases()
+    out, lp3, ref = batch_results()
+    vertices = jnp.asarray(np.stack([c["arrays"][0] for c in cs]))
+    num_vertices = jnp.asarray(np.stack([c["arrays"][1] for c in cs]))
+    tables = jax.jit(jax.vmap(orca.process_obstacles))(vertices, num_vertices)
+
+    @jax.jit
+    def solve(pos, vel, radius, pref, max_speed, tables, th_obst):
+        return jax.vmap(lambda p, v, r, pr, m, t, th: orca.solve_with_info(
+            p, v, r, pr, m, **ENV_SETTINGS, obstacles=t, time_horizon_obst=th))(pos, vel, radius, pref, max_speed,
+                                                                                  tables, th_obst)
+
+    got, got_lp3 = (np.asarray(x) for x in solve(*_stack([c["scene"] for c in cs]), tables,
+                                                 jnp.asarray([c["th"] for c in cs], jnp.float32)))
+    np.testing.assert_array_equal(got_lp3, lp3)
+    np.testing.assert_allclose(got[~lp3], out[~lp3], atol=1e-5)
+    np.testing.assert_allclose(got, out, atol=1e-2)
+    # one scene, unbatched
+    case = cs[PER_KIND + 1]
+    table = orca.process_obstacles(*case["arrays"])
+    np.testing.assert_allclose(_single(case, obstacles=table), _single(case), atol=1e-5)
+    with pytest.raises(ValueError, match="ObstacleTable of one scene"):
+        _single(case, obstacles=tables)
+
+
 # ---------------------------------------------------------------------------------------------------------
 # 4. edge cases
 

@@ -209,6 +209,13 @@ class EvalResult:
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in dataclasses.asdict(self).items()}
 
+    # An undefined metric (NaN: no obstacle, no collision course) equals itself: two evaluations of the same
+    # episodes are equal results.
+    def __eq__(self, other):
+        return isinstance(other, EvalResult) and self.to_dict() == other.to_dict()
+
+    __hash__ = None
+
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)
 

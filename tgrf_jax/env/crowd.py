@@ -19,7 +19,7 @@ from tgrf_jax import reward as reward_lib
 from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
 from tgrf_jax.env import humans as humans_lib
 from tgrf_jax.env import obstacles as obstacles_lib
-from tgrf_jax.env import prediction, scenario, sensing
+from tgrf_jax.env import orca, prediction, scenario, sensing
 from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.gst import history as gst_history
 from tgrf_jax.env.gst import weights as gst_weights
@@ -239,6 +239,7 @@ class CrowdNavEnv:
             scenario=index,
             obstacles=layout,
             obstacles_dropped=dropped,
+            obstacle_table=self._obstacle_table(layout),
         )
         visible = self.visible(state, params)
         if self.config.predictor == "gst":
@@ -272,6 +273,14 @@ class CrowdNavEnv:
         layout = layout.replace(num_vertices=jnp.where(blocking, 0, layout.num_vertices))
         return layout, jnp.sum(blocking, dtype=jnp.int32)
 
+    def _obstacle_table(self, layout: Obstacles):
+        """The episode's obstacles processed for the ORCA humans (RVO2's obstacle tree, built once per episode
+        instead of in every ORCA solve), or None (no obstacle slots, or Social Force humans)."""
+        cfg = self.config
+        if cfg.obstacle_slots == 0 or cfg.human_policy != "orca" or cfg.num_humans == 0:
+            return None
+        return orca.process_obstacles(layout.vertices, layout.num_vertices)
+
     def visible(self, state: EnvState, params: EnvParams):
         """Humans the robot perceives: within sensor range and, with env.occlusion, in its line of sight."""
         visible = sensing.visible_mask(state, params)
@@ -299,7 +308,7 @@ class CrowdNavEnv:
         robot, delta_heading = move_robot(robot0, action, params, cfg.kinematics)
         layout = state.obstacles
         human_vel = humans_lib.human_velocities(humans0, robot0 if cfg.robot_visible else None, params, cfg,
-                                                state.orca_neighbor_dist, layout)
+                                                state.orca_neighbor_dist, layout, state.obstacle_table)
         humans = humans0.replace(pos=humans0.pos + human_vel * params.dt, vel=human_vel)
 
         # Outcome of the action, judged on the post-step state (collisions swept over the step).
@@ -387,7 +396,7 @@ class CrowdNavEnv:
             pred = gst_history.predictions(params.predictor, state.history)
             return pred.means, visible & pred.out_mask
         return prediction.predict(state.humans, params, self.config, state.orca_neighbor_dist,
-                                  state.obstacles), visible
+                                  state.obstacles, state.obstacle_table), visible
 
     def _future_intrusion(self, state: EnvState, visible, predictions, params):
         """itr_future: robot centre within intrusion_radius of a visible human's true position at t+1..t+K."""
@@ -398,7 +407,7 @@ class CrowdNavEnv:
             future = predictions
         else:
             future = prediction.true_future(state.humans, params, cfg, cfg.pred_horizon, state.orca_neighbor_dist,
-                                            state.obstacles)
+                                            state.obstacles, state.obstacle_table)
         dist = norm(future - state.robot.pos)
         dist = jnp.where(visible[:, None], dist, jnp.inf)
         nearest = jnp.min(dist, initial=jnp.inf)

@@ -23,13 +23,15 @@ ORCA_RADIUS_PAD = 0.01
 
 
 def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, config: EnvConfig, neighbor_dist,
-                     obstacles: Obstacles | None = None):
+                     obstacles: Obstacles | None = None, obstacle_table: orca.ObstacleTable | None = None):
     """New velocities (N, 2) of all humans from the current joint state.
 
     `robot` is None when humans do not see the robot (the default); otherwise it joins the solve as an extra
     agent whose own result is discarded. `neighbor_dist` is the episode's ORCA neighbour distance
     (`EnvState.orca_neighbor_dist`). `obstacles`: the episode's static obstacles (ORCA: RVO2's obstacle lines;
-    Social Force: the wall force), None or no slots for an open space.
+    Social Force: the wall force), None or no slots for an open space. `obstacle_table`: optionally the same
+    obstacles processed for ORCA (`orca.process_obstacles`, `EnvState.obstacle_table`): the same velocities,
+    without processing the obstacles again.
     """
     if obstacles is not None and obstacles.num_vertices.shape[-1] == 0:
         obstacles = None
@@ -53,8 +55,9 @@ def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, con
             pos, vel, radius + ORCA_RADIUS_PAD + params.orca_safety_space, pref, v_pref,
             time_horizon=params.orca_time_horizon, dt=params.dt,
             neighbor_dist=neighbor_dist, max_neighbors=config.max_neighbors, neighbor_mask=present,
-            **({} if obstacles is None else dict(obstacles=(obstacles.vertices, obstacles.num_vertices),
-                                                 time_horizon_obst=params.orca_time_horizon_obst)),
+            **({} if obstacles is None else dict(
+                obstacles=(obstacles.vertices, obstacles.num_vertices) if obstacle_table is None else obstacle_table,
+                time_horizon_obst=params.orca_time_horizon_obst)),
         )
     else:
         new_vel = social_force.step(

@@ -3,7 +3,8 @@
 An episode's obstacles are M polygon slots of up to V vertices (`Obstacles`), counter-clockwise like RVO2's
 ``addObstacle`` (the interior lies on the left of each edge); a polygon of 2 vertices is a wall segment with no
 interior. Every function here is dense array code over all edges at once (E = M * V edge slots, the unused ones
-masked), so that it vectorises under ``jax.vmap`` over many environments: no loops over edges or rays. As in
+masked), so that it vectorises under ``jax.vmap`` over many environments (the LiDAR unrolls its edges and discs
+into one loop over the rays, with a running nearest hit). As in
 `geometry`, x and y are handled as separate arrays because reductions over a trailing axis of size 2 vectorise
 poorly on XLA:CPU. Degenerate input (points on an edge, zero-length edges or motions, parallel rays) gives
 finite results: every division and square root is guarded.
@@ -225,27 +226,36 @@ def lidar_scan(origin, heading, obstacles: Obstacles, circle_pos, circle_radius,
     `num_rays` is static.
     """
     angle = heading + (2.0 * math.pi / num_rays) * jnp.arange(num_rays, dtype=jnp.float32)
-    dx, dy = jnp.cos(angle)[:, None], jnp.sin(angle)[:, None]  # (R, 1)
+    dx, dy = jnp.cos(angle), jnp.sin(angle)  # (R,)
     ox, oy = origin[0], origin[1]
 
+    # One fused loop over the rays, the edges and discs unrolled into it with a running nearest hit (an (R, E)
+    # table reduced over its minor axis vectorises poorly under vmap, and its per-pair division is not fused).
     ax, ay, bx, by, valid = _flat_edges(obstacles)
     ex, ey = bx - ax, by - ay
     wx, wy = ax - ox, ay - oy
-    denom = _cross(dx, dy, ex, ey)  # (R, E)
-    t_num, s_num = _cross(wx, wy, ex, ey), _cross(wx, wy, dx, dy)
-    # t >= 0 and 0 <= s <= 1 tested on the numerators (times the sign of denom): one division per pair, not two.
-    sign, size = jnp.sign(denom), jnp.abs(denom)
-    hit = valid & (size > _TINY) & (t_num * sign >= 0.0) & (s_num * sign >= 0.0) & (s_num * sign <= size)
-    edge_t = jnp.where(hit, t_num / jnp.where(hit, denom, 1.0), jnp.inf)
-    edge_range = jnp.min(edge_t, axis=-1, initial=jnp.inf)
+    t_num = _cross(wx, wy, ex, ey)  # (E,): the numerator of t does not depend on the ray
+    # The nearest edge hit as a fraction best_n / best_d (best_d > 0), compared by cross-multiplication: one
+    # division per ray; the chosen edge's t is its exact quotient t_num / denom (the signs flip exactly).
+    best_n = jnp.full(dx.shape, jnp.inf, jnp.float32)
+    best_d = jnp.ones(dx.shape, jnp.float32)
+    for e in range(ax.shape[0]):
+        denom = _cross(dx, dy, ex[e], ey[e])
+        # t >= 0 and 0 <= s <= 1 tested on the numerators (times the sign of denom)
+        sign, size = jnp.sign(denom), jnp.abs(denom)
+        tn, sn = t_num[e] * sign, _cross(wx[e], wy[e], dx, dy) * sign
+        hit = valid[e] & (size > _TINY) & (tn >= 0.0) & (sn >= 0.0) & (sn <= size) & (tn * best_d < best_n * size)
+        best_n, best_d = jnp.where(hit, tn, best_n), jnp.where(hit, size, best_d)
+    edge_range = best_n / best_d  # inf where no edge is hit
 
     mx, my = circle_pos[:, 0] - ox, circle_pos[:, 1] - oy  # (N,)
     q = mx * mx + my * my - circle_radius * circle_radius
-    b = dx * mx + dy * my  # (R, N)
-    disc = b * b - q
-    circle_hit = circle_mask & (q > 0.0) & (b > 0.0) & (disc >= 0.0)
-    circle_t = jnp.where(circle_hit, b - jnp.sqrt(jnp.maximum(disc, 0.0)), jnp.inf)
-    circle_range = jnp.min(circle_t, axis=-1, initial=jnp.inf)
+    circle_range = jnp.full(dx.shape, jnp.inf, jnp.float32)
+    for i in range(mx.shape[0]):
+        b = dx * mx[i] + dy * my[i]
+        disc = b * b - q[i]
+        hit = circle_mask[i] & (q[i] > 0.0) & (b > 0.0) & (disc >= 0.0)
+        circle_range = jnp.where(hit, jnp.minimum(circle_range, b - jnp.sqrt(jnp.maximum(disc, 0.0))), circle_range)
 
     ranges = jnp.minimum(jnp.minimum(edge_range, circle_range), max_range)
     blocked = jnp.any(circle_mask & (q <= 0.0)) | inside(origin, obstacles)

@@ -46,7 +46,8 @@ How it is vectorised (RVO2's algorithm is sequential and branchy):
 
 Static obstacles (``obstacles=``; the obstacle-free program is unchanged when there are none):
 
-* ``processObstacles`` is rebuilt per scene and call (:func:`_obstacle_table`): the polygons become directed
+* ``processObstacles`` runs per scene (:func:`_obstacle_table`): in every call, or once for obstacles that stay
+  put (:func:`process_obstacles`, whose table :func:`solve` takes instead of the polygons): the polygons become directed
   edges (a wall of 2 vertices: a -> b and b -> a), and RVO2's kd-tree (a BSP) is built one level at a time
   for all lists and scenes at once, because it matters twice: it splits every edge that straddles a split
   line (inserting a convex vertex; packed layouts get several splits), and ties in an agent's obstacle
@@ -75,7 +76,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["CPU_BLOCK", "RVO_EPSILON", "WHOLE_BATCH", "default_block", "solve", "solve_with_info"]
+__all__ = ["CPU_BLOCK", "RVO_EPSILON", "WHOLE_BATCH", "ObstacleTable", "default_block", "process_obstacles", "solve",
+           "solve_with_info"]
 
 RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshold in the LPs.
 _BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
@@ -801,6 +803,68 @@ def _obstacle_table(vx, vy, nv, capacity) -> _ObstacleTable:
     return _ObstacleTable(e, prv, *tie, *(at(x, prv) for x in tie))
 
 
+ObstacleTable = _ObstacleTable  # the public name of a processed obstacle set (see process_obstacles)
+_TABLE_LEAVES = len(jax.tree.leaves(_ObstacleTable(_Edges(*(0,) * len(_Edges._fields)),
+                                                   *(0,) * (len(_ObstacleTable._fields) - 1))))
+
+
+def _process_scenes(vertices, num_vertices):
+    """vertices (B, M, V, 2), num_vertices (B, M) -> the tables' leaves, each (B, E)."""
+    vertices = vertices.astype(jnp.float32)
+    table = _obstacle_table(vertices[..., 0].transpose(1, 2, 0), vertices[..., 1].transpose(1, 2, 0),
+                            num_vertices.astype(jnp.int32).T, _edge_capacity(vertices.shape[1] * vertices.shape[2]))
+    return tuple(x.T for x in jax.tree.leaves(table))
+
+
+@jax.custom_batching.custom_vmap
+def _process_batch(vertices, num_vertices):
+    return _process_scenes(vertices, num_vertices)
+
+
+@_process_batch.def_vmap
+def _process_batch_rule(axis_size, in_batched, vertices, num_vertices):
+    args = [x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape)
+            for x, bt in zip((vertices, num_vertices), in_batched)]
+    inner = args[0].shape[1]
+    out = _process_batch(*(x.reshape((axis_size * inner,) + x.shape[2:]) for x in args))
+    return tuple(x.reshape((axis_size, inner) + x.shape[1:]) for x in out), (True,) * len(out)
+
+
+@jax.custom_batching.custom_vmap
+def _process_scene(vertices, num_vertices):
+    return tuple(x[0] for x in _process_scenes(vertices[None], num_vertices[None]))
+
+
+@_process_scene.def_vmap
+def _process_scene_rule(axis_size, in_batched, vertices, num_vertices):
+    args = [x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape)
+            for x, bt in zip((vertices, num_vertices), in_batched)]
+    out = _process_batch(*args)
+    return out, (True,) * len(out)
+
+
+def process_obstacles(vertices, num_vertices) -> ObstacleTable:
+    """RVO2's ``processObstacles`` for one scene's obstacles (vertices (M, V, 2), num_vertices (M,), as
+    :func:`solve` takes them): the kd-tree's split edges and the tree query's tie order, every field (E,) with
+    E = :func:`_edge_capacity` (M * V).  :func:`solve` takes the result in place of the (vertices,
+    num_vertices) tuple, with the same results; obstacles that stay put for many solves (an episode) are so
+    processed once instead of in every solve.  Jittable and vmappable (one batched kernel under ``jax.vmap``);
+    M * V must be > 0."""
+    vertices = jnp.asarray(vertices, jnp.float32)
+    num_vertices = jnp.asarray(num_vertices, jnp.int32)
+    if vertices.ndim != 3 or vertices.shape[2] != 2 or num_vertices.shape != vertices.shape[:1]:
+        raise ValueError(f"obstacles: vertices {vertices.shape} must be (M, V, 2) and num_vertices "
+                         f"{num_vertices.shape} (M,)")
+    if vertices.shape[0] * vertices.shape[1] == 0:
+        raise ValueError("process_obstacles needs at least one vertex slot (M * V > 0)")
+    return _table_from_leaves(_process_scene(vertices, num_vertices))
+
+
+def _table_from_leaves(leaves) -> ObstacleTable:
+    edges = _Edges(*leaves[:len(_Edges._fields)])
+    return _ObstacleTable(edges, *leaves[len(_Edges._fields):])
+
+
 # -- per agent (problem p = agent * B + scene): obstacle neighbours and their ORCA lines
 
 
@@ -1195,7 +1259,8 @@ def _linear_program3(lines, rank, radius, r, fail_at, chunk, obst=None, fail_o=N
 
 def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_dist, *obstacles, k, block):
     """Batched core: pos/vel/pref (B, N, 2), rad/vmax/mask (B, N), scalars (B,); ``obstacles``: none, or
-    vertices (B, M, V, 2), num_vertices (B, M) and time_horizon_obst (B,).  Returns (B, N, 2) and the
+    vertices (B, M, V, 2), num_vertices (B, M) (or the leaves of their :class:`ObstacleTable`, each (B, E)) and
+    time_horizon_obst (B,).  Returns (B, N, 2) and the
     per-agent LP2 failure flag (B, N)."""
     b, n = rad.shape
     f32 = jnp.float32
@@ -1224,11 +1289,10 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
         return jnp.stack([scene_major(rx), scene_major(ry)], -1), scene_major(failed)
 
     # obstacles: their lines first (RVO2's orcaLines_ order), then the agent lines
-    verts, nv, th_obst = obstacles
-    n_slots = _edge_capacity(verts.shape[1] * verts.shape[2])
-    verts = verts.astype(f32)
-    table = _obstacle_table(verts[..., 0].transpose(1, 2, 0), verts[..., 1].transpose(1, 2, 0),
-                            nv.astype(jnp.int32).T, n_slots)
+    *obstacles, th_obst = obstacles
+    if len(obstacles) == 2:  # (vertices (B, M, V, 2), num_vertices (B, M)): processed here
+        obstacles = _process_scenes(*obstacles)
+    table = _table_from_leaves(tuple(x.T for x in obstacles))  # processed (process_obstacles): (B, E) -> (E, B)
     th_obst = jnp.broadcast_to(th_obst.astype(f32)[None], (n, b))  # (agent, scene), as the edge walk takes them
     inv_th_obst = 1.0 / th_obst  # RVO2: invTimeHorizonObst = 1.0f / timeHorizonObst_
     obst_lines, n_obst = _obstacle_lines(table, pos[..., 0].T, pos[..., 1].T, vel[..., 0].T, vel[..., 1].T,
@@ -1300,7 +1364,14 @@ def solve_with_info(positions, velocities, radii, pref_velocities, max_speeds, *
     if block < 1:
         raise ValueError(f"block = {block}: must be >= 1 (problems per block)")
     extra = ()
-    if obstacles is not None:
+    if isinstance(obstacles, _ObstacleTable):  # processed by process_obstacles
+        if time_horizon_obst is None:
+            raise ValueError("obstacles need time_horizon_obst (RVO2's timeHorizonObst)")
+        leaves = tuple(jnp.asarray(x) for x in jax.tree.leaves(obstacles))
+        if len(leaves) != _TABLE_LEAVES or any(x.ndim != 1 or x.shape != leaves[0].shape for x in leaves):
+            raise ValueError("obstacles: an ObstacleTable of one scene (every field (E,), from process_obstacles)")
+        extra = leaves + (f32(time_horizon_obst),)
+    elif obstacles is not None:
         vertices, num_vertices = obstacles
         vertices, num_vertices = f32(vertices), jnp.asarray(num_vertices, jnp.int32)
         if vertices.ndim != 3 or vertices.shape[2] != 2 or num_vertices.shape != vertices.shape[:1]:
@@ -1344,7 +1415,9 @@ def solve(positions, velocities, radii, pref_velocities, max_speeds, *, time_hor
       obstacles: None, or static obstacles shared by all agents: a tuple (vertices (M, V, 2) float,
         num_vertices (M,) int), polygon m being vertices[m, :num_vertices[m]], counter-clockwise as RVO2's
         ``addObstacle`` takes them (interior on the left of each edge; 2 vertices: a wall segment, both of
-        its directed edges convex); slots with fewer than 2 vertices are unused.  Under ``jax.vmap`` each
+        its directed edges convex); slots with fewer than 2 vertices are unused.  Or the same obstacles
+        processed once by :func:`process_obstacles` (an :class:`ObstacleTable`): the same results, without
+        rebuilding RVO2's obstacle tree in every call.  Under ``jax.vmap`` each
         scene may have its own (or all share unbatched ones).  None, or M * V == 0: the obstacle-free
         program.  RVO2's kd-tree splits edges; here at most :func:`_edge_capacity` (M * V) - M * V of them
         (the env's layouts need far fewer), an edge beyond that staying whole.

@@ -11,12 +11,13 @@ from tgrf_jax.env.humans import human_velocities
 from tgrf_jax.env.types import EnvParams, Humans
 
 
-def predict(humans: Humans, params: EnvParams, config: EnvConfig, neighbor_dist, obstacles=None):
+def predict(humans: Humans, params: EnvParams, config: EnvConfig, neighbor_dist, obstacles=None,
+            obstacle_table=None):
     """Predicted world positions (N, K, 2) at t+1..t+K, or None for predictor 'none'.
 
     const_vel extrapolates the last applied velocity; truth rolls the human model itself forward K steps from
     the true joint state (among the episode's `obstacles`) with goals frozen and the robot left out (as the
-    reference does).
+    reference does). `obstacle_table`: the obstacles processed for ORCA (`EnvState.obstacle_table`) or None.
     """
     k = config.pred_horizon
     if config.predictor == "none":
@@ -24,14 +25,15 @@ def predict(humans: Humans, params: EnvParams, config: EnvConfig, neighbor_dist,
     if config.predictor == "const_vel":
         steps = jnp.arange(1, k + 1, dtype=jnp.float32)[None, :, None] * params.dt
         return humans.pos[:, None, :] + steps * humans.vel[:, None, :]
-    return true_future(humans, params, config, k, neighbor_dist, obstacles)
+    return true_future(humans, params, config, k, neighbor_dist, obstacles, obstacle_table)
 
 
-def true_future(humans: Humans, params: EnvParams, config: EnvConfig, k: int, neighbor_dist, obstacles=None):
+def true_future(humans: Humans, params: EnvParams, config: EnvConfig, k: int, neighbor_dist, obstacles=None,
+                obstacle_table=None):
     """Ground-truth future positions (N, k, 2) of the humans' own policy, goals frozen, robot invisible."""
 
     def advance(h: Humans, _):
-        vel = human_velocities(h, None, params, config, neighbor_dist, obstacles)
+        vel = human_velocities(h, None, params, config, neighbor_dist, obstacles, obstacle_table)
         h = h.replace(pos=h.pos + vel * params.dt, vel=vel)
         return h, h.pos
 

@@ -86,6 +86,9 @@ class EnvState:
     obstacles: Obstacles  # the episode's static obstacles (env.obstacle_slots slots; none: 0 slots)
     obstacles_dropped: jnp.ndarray  # () int32 obstacle slots removed at reset for lying on the robot's start or goal
     history: Any = None  # learned predictor's observed frames (tgrf_jax.env.gst.history), else None
+    # `obstacles` processed once for the ORCA humans (orca.process_obstacles, at reset), else None (then every
+    # solve processes them itself, with the same results); derived data: replacing `obstacles` needs a new one
+    obstacle_table: Any = None
 
 
 @struct.dataclass
