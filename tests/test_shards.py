@@ -64,7 +64,10 @@ def flat(tree):
 def train(t):
     initial = t.init(jax.random.PRNGKey(3), t.default_hparams)
     initial_params = flat(initial.params)  # before run_chunk, which consumes (donates) the state
-    state, metrics = t.run_chunk(initial, 3)
+    # compiled once, as a run compiles it; each chunk's output is the next chunk's input
+    compiled = t.run_chunk.lower(initial, np.int32(1)).compile()
+    state, _ = compiled(initial, np.int32(2))
+    state, metrics = compiled(state, np.int32(1))
     return {
         "placement": shards.describe(2, t.trainer.mesh), "mesh_is_none": t.trainer.mesh is None,
         "params": flat(state.params), "initial_params": initial_params,

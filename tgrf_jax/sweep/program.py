@@ -136,7 +136,9 @@ class SweepProgram:
         def chunk(ts, n_updates):
             return smap(_per_run(trainer.run_updates, n_batched=1), 1, replicated_last=True)(ts, n_updates)
 
-        self.chunk = jax.jit(chunk, donate_argnums=0)
+        # out_shardings pins every output leaf to the run axis: zero-element leaves (no obstacle slots, no LiDAR)
+        # would otherwise come back replicated, and the compiled chunk refuses them as its next input
+        self.chunk = jax.jit(chunk, donate_argnums=0, out_shardings=self.sharding)
         net = trainer.net
         self.eval_env = CrowdNavEnv(dataclasses.replace(config.env, track_future_intrusion=True), config.reward)
 
@@ -152,23 +154,12 @@ class SweepProgram:
     def compiled_chunk(self, state):
         """(compiled chunk at this batch size, taking the update count as an argument; compile seconds or None
         if cached)."""
-        import jax
-
         key = int(np.shape(state.update)[0])
         if key in self.compiled:
             return self.compiled[key], None
         c0 = time.perf_counter()
         compiled = self.chunk.lower(state, np.int32(1)).compile()
-        sharding = self.sharding
-
-        def call(state, n):
-            # A chunk hands zero-element leaves (no obstacle slots, no LiDAR) back replicated, which the compiled
-            # chunk refuses as its next input: put them back on the run axis (nothing to copy).
-            state = jax.tree_util.tree_map(
-                lambda x: jax.device_put(x, sharding) if x.size == 0 and x.sharding != sharding else x, state)
-            return compiled(state, np.int32(n))
-
-        self.compiled[key] = call
+        self.compiled[key] = lambda state, n: compiled(state, np.int32(n))
         return self.compiled[key], time.perf_counter() - c0
 
 

@@ -556,6 +556,10 @@ def make_train(config: TrainConfig, devices="auto") -> Train:
     mesh = shards.shard_mesh(config.ppo.num_shards, devices)
     trainer = Trainer(config, env, make_network_for(config), mesh)
     jit_init = jax.jit(trainer.init, out_shardings=trainer.state_shardings)
+    # Pinned output shardings: zero-element leaves (no obstacle slots, no LiDAR) would otherwise come back
+    # replicated, and the compiled chunk refuses them as its next input.
+    chunk_shardings = {} if mesh is None else {
+        "out_shardings": (trainer.state_shardings, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))}
 
     def init(key, hparams: HParams | None = None) -> TrainState:
         if hparams is not None:
@@ -566,7 +570,7 @@ def make_train(config: TrainConfig, devices="auto") -> Train:
         train=trainer.train,
         init=init,
         # the state is donated: a chunk updates it in place rather than holding two copies
-        run_chunk=jax.jit(trainer.run_updates, donate_argnums=0),
+        run_chunk=jax.jit(trainer.run_updates, donate_argnums=0, **chunk_shardings),
         trainer=trainer,
         default_hparams=trainer.default_hparams,
         place=trainer.place,
