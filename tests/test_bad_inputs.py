@@ -236,7 +236,7 @@ CASES = {
                                    "none"),
     "sweep: negative from-step": ("tgrf-sweep", ["--resume", "{sweep}", "--from-step", "-1"],
                                   "--from-step = -1 must be >= 0"),
-    # ---- issue 41: values, names and files that were trusted blindly or ended in a traceback
+    # ---- values, names and files that must be checked with a message, not trusted or left to a traceback
     "integer YAML key": ("tgrf-train", ["{tmp}/int_key.yaml"], "unknown config key '1'; valid keys: env"),
     "list nested 5000 deep": ("tgrf-train", ["{tmp}/deep.yaml"], "config file '{tmp}/deep.yaml' is nested too deeply"),
     "quoted number": ("tgrf-train", ["{tmp}/quoted.yaml"],
@@ -345,7 +345,7 @@ def places(tmp_path_factory):
     (tmp / "mismatch" / "config.yaml").write_text(text.replace("size: small", "size: paper"))
     shutil.rmtree(tmp / "nockpt" / "checkpoints")
     (tmp / "edited" / "config.yaml").write_text(text.replace("lr: 0.001", "lr: 0.002"))
-    _issue_41_places(tmp, text)
+    _files_named_by_cases(tmp, text)
     # what a sweep killed before its first checkpoint leaves
     spec = SweepSpec.create(TINY, ["reward.h_disc=1,2"])
     (tmp / "sweep").mkdir()
@@ -358,8 +358,8 @@ RUN_DIRS = ("run", "damaged", "garbage", "mismatch", "nockpt", "edited", "sweep"
             "regridded", "truncated", "truncated_meta", "tornconfig", "binconfig")
 
 
-def _issue_41_places(tmp, config_text):
-    """Files of issue 41's cases: config and experiment files, run directories with damaged bookkeeping, predictor
+def _files_named_by_cases(tmp, config_text):
+    """Files for the cases above: config and experiment files, run directories with damaged bookkeeping, predictor
     datasets, parameters and run directories."""
     import json
 

@@ -70,9 +70,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="predict corrections to constant velocity (--no-cv-prior: the released model exactly)")
     t.add_argument("--mean-loss", choices=train_lib.MEAN_LOSSES, default=tdef.mean_loss,
                    help="what fits the predicted means: ade (their displacement error; the NLL fits only the "
-                        "spreads) or nll (GST.md's loss for everything)")
+                        "spreads) or nll (CrowdNav++ GST's loss for everything)")
     t.add_argument("--dropout", type=float, default=tdef.dropout,
-                   help="training-time dropout rate (GST.md: 0.1)")
+                   help="training-time dropout rate (CrowdNav++'s GST: 0.1)")
     t.add_argument("--export", help="also write the trained parameters here (.npz + .json)")
     t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints (the run dir must be new)")
     t.add_argument("--from-step", type=int, metavar="N",

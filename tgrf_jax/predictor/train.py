@@ -1,9 +1,9 @@
 """Training and held-out evaluation of the predictor: bivariate Gaussian NLL, Adam with a step schedule,
 one compiled update (a scan of updates per call), orbax checkpoints with bit-identical resume.
 
-GST.md's recipe is `mean_loss="nll"`, `dropout=0.1`, `cv_prior=False`, Adam at lr 1e-3 multiplied by 0.3 every
-quarter of the run, 64 windows per update. The defaults differ where the simulator's crowds showed it matters
-(docs/predictor.md): the means are fitted to the position error (`mean_loss="ade"`), on top of the
+CrowdNav++'s GST training recipe (Huang et al., RA-L 2022; docs/predictor.md) is `mean_loss="nll"`,
+`dropout=0.1`, `cv_prior=False`, Adam at lr 1e-3 multiplied by 0.3 every quarter of the run, 64 windows per
+update. The defaults differ where the simulator's crowds showed it matters (docs/predictor.md): the means are fitted to the position error (`mean_loss="ade"`), on top of the
 constant-velocity prior, without dropout. The reference trains 100 epochs over ~160k windows; our datasets hold
 ~10x more windows, so a run is counted in updates, not epochs."""
 
@@ -54,8 +54,8 @@ class TrainConfig:
     checkpoint_every: int = 1000
     eval_windows: int = 20000
     cv_prior: bool = True  # predict corrections to constant velocity (see tgrf_jax.env.gst.model)
-    mean_loss: str = "ade"  # what fits the predicted means: "ade" (displacement error) or "nll" (GST.md's loss)
-    dropout: float = 0.0  # GST.md trains with 0.1
+    mean_loss: str = "ade"  # what fits the predicted means: "ade" (displacement error) or "nll" (CrowdNav++ GST's loss)
+    dropout: float = 0.0  # CrowdNav++'s GST trains with 0.1
 
     def __post_init__(self):
         for name in ("updates", "batch_size", "decay_every", "log_every", "checkpoint_every", "eval_windows"):
@@ -100,7 +100,7 @@ def displacements(batch: data_lib.Batch):
 
 
 def nll_terms(g: StepGaussians, batch: data_lib.Batch):
-    """(per-step NLL (N, 5) without the log 2 pi constant, mask (N, 5)) as GST.md states the loss."""
+    """(per-step NLL (N, 5) without the log 2 pi constant, mask (N, 5)) as CrowdNav++'s GST defines the loss."""
     corr = jnp.clip(g.corr, -_CORR_LIMIT, _CORR_LIMIT)
     n = (displacements(batch) - g.mu) / g.sigma
     nx, ny = n[..., 0], n[..., 1]
@@ -115,8 +115,8 @@ def gaussians_loss(g: StepGaussians, batch: data_lib.Batch, mean_loss: str = "nl
     """Loss of predicted Gaussians for a batch of windows (leading axis), averaged over the valid (human, step)
     pairs.
 
-    "nll": the Gaussian NLL fits means, spreads and correlations together (GST.md). "ade": the means are fitted
-    to the Euclidean error of the predicted positions (what ADE / FDE measure), and the NLL, with the means held
+    "nll": the Gaussian NLL fits means, spreads and correlations together (CrowdNav++'s GST recipe). "ade": the
+    means are fitted to the Euclidean error of the predicted positions (what ADE / FDE measure), and the NLL, with the means held
     fixed, fits the spreads and correlations. Under the NLL the heavy-tailed errors of a crowd (abrupt goal
     changes) pull the means away from the typical path: on ORCA crowds NLL-fitted means predict worse than
     constant velocity (docs/predictor.md)."""
