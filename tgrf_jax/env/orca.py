@@ -1036,19 +1036,21 @@ def _obstacle_lines(t: _ObstacleTable, px, py, vx, vy, radius, max_speed, inv_th
 
     RVO2 walks the neighbours in order and skips those 'already covered' (both vertices, scaled by inv_th,
     at least the radius behind a line built before).  Lines only accumulate, so an edge once covered stays
-    covered: each round (all problems together) takes the first neighbour neither covered nor done, computes
-    its line (:func:`_obstacle_line`) and, if RVO2 makes one, keeps it and marks every edge it covers.  So
-    the rounds follow the uncovered neighbours (a few), not all of them, and no edge slot's line is computed
-    in vain.
+    covered: each round takes every problem's first neighbour neither covered nor done, computes its line
+    (:func:`_obstacle_line`) and, if RVO2 makes one, keeps it and marks every edge it covers.  So the rounds
+    follow the uncovered neighbours (a few), not all of them, and no edge slot's line is computed in vain.
+
+    Most agents are done after two or three rounds while a few near many edges need up to ten, so the rounds
+    run over all problems only while more than a quarter of them still find a neighbour; the rest are then
+    gathered into chunks that run their own rounds to the end.
     """
     e = t.edges
     n_slots, n, b = e.ax.shape[0], px.shape[0], px.shape[1]
+    n_prob = n * b
     per_agent = jax.tree.map(lambda x: x[:, None, :], t)  # (E, 1, B)
     reach = th_obst * max_speed + radius
     key, tie = _obstacle_neighbours(per_agent, px[None], py[None], (reach * reach)[None])
     margin = inv_th * radius  # invTimeHorizonObst * radius_
-    flat = lambda x: x.reshape(n * b)  # noqa: E731  (N, B) -> problems
-    scene = jnp.broadcast_to(jnp.arange(b, dtype=jnp.int32)[None], (n, b))
 
     def next_slot(key, tie, done):
         """The slot of the least (key, tie) among the neighbours not done (n_slots: none).  One loop."""
@@ -1068,30 +1070,70 @@ def _obstacle_lines(t: _ObstacleTable, px, py, vx, vy, radius, max_speed, inv_th
         return done | (keep & (_det(c1x - lx, c1y - ly, ldx, ldy) - margin >= -RVO_EPSILON)
                        & (_det(c2x - lx, c2y - ly, ldx, ldy) - margin >= -RVO_EPSILON))
 
-    def step(state):
-        lines, count, done, _ = state
-        s = _computed_once(next_slot, key, tie, done)  # (N, B)
-        found = s < n_slots
-        index = jnp.minimum(s, n_slots - 1) * b + scene
-        edge = [jnp.take(x.reshape(-1), index) for x in e[:12]]  # gathers from the scene's edges
-        args = (*edge, px, py, vx, vy, radius, inv_th)
-        # two loops of the line's chain (a pair each); no line: point x = inf, so no third loop for the flag
-        qx, qy = _computed_once(_line_point_or_inf, *args)
-        qdx, qdy = _computed_once(lambda *a: _obstacle_line(*a)[2:4], *args)
-        keep = found & (qx < jnp.inf)
-        row = jnp.where(keep, count, n_slots)  # out of range: dropped
-        cols = jnp.arange(n * b, dtype=jnp.int32)
-        lines = tuple(x.at[flat(row), cols].set(flat(v), mode="drop") for x, v in zip(lines, (qx, qy, qdx, qdy)))
-        slot = jnp.arange(n_slots, dtype=jnp.int32)[:, None, None]
-        kept = tuple(jnp.where(keep, v, 0.0)[None] for v in (qx, qy, qdx, qdy))  # no inf in the test below
-        done = _computed_once(covers, done | (slot == s[None]), *per_agent.edges[:4], px[None], py[None],
-                              inv_th[None], margin[None], keep[None], *kept)
-        return lines, count + keep.astype(jnp.int32), done, jnp.any(found)
+    def round_of(key, tie, corners, scene, agent):
+        """One round for problems of some shape S (the whole (N, B) batch, or a (C,) chunk): key, tie (E,) + S;
+        corners: the 4 edge end-point tables, (E,) + S or broadcastable; scene: S, the problems' scenes;
+        agent = (px, py, vx, vy, radius, inv_th, margin), each S.  The lines are (E, prod S), problems flat."""
+        shape = scene.shape
+        size = scene.size
+        cols = jnp.arange(size, dtype=jnp.int32)
+        flat = lambda x: x.reshape(size)  # noqa: E731
+        apx, apy, avx, avy, arad, ainv, amargin = agent
 
-    zeros = jnp.zeros((n_slots, n * b), jnp.float32)
-    state = ((zeros,) * 4, jnp.zeros((n, b), jnp.int32), key >= _BIG, jnp.array(True))
-    lines, count = lax.while_loop(lambda s: s[3], step, state)[:2]
-    return lines, flat(count)
+        def step(state):
+            lines, count, done, _ = state
+            s = _computed_once(next_slot, key, tie, done)
+            found = s < n_slots
+            index = jnp.minimum(s, n_slots - 1) * b + scene
+            edge = [jnp.take(x.reshape(-1), index) for x in e[:12]]  # gathers from the scene's edges
+            args = (*edge, apx, apy, avx, avy, arad, ainv)
+            # two loops of the line's chain (a pair each); no line: point x = inf, so no third loop for the flag
+            qx, qy = _computed_once(_line_point_or_inf, *args)
+            qdx, qdy = _computed_once(lambda *a: _obstacle_line(*a)[2:4], *args)
+            keep = found & (qx < jnp.inf)
+            row = jnp.where(keep, count, n_slots)  # out of range: dropped
+            lines = tuple(x.at[flat(row), cols].set(flat(v), mode="drop")
+                          for x, v in zip(lines, (qx, qy, qdx, qdy)))
+            slot = jnp.arange(n_slots, dtype=jnp.int32).reshape((n_slots,) + (1,) * len(shape))
+            kept = tuple(jnp.where(keep, v, 0.0)[None] for v in (qx, qy, qdx, qdy))  # no inf in the test below
+            done = _computed_once(covers, done | (slot == s[None]), *corners, apx[None], apy[None], ainv[None],
+                                  amargin[None], keep[None], *kept)
+            return lines, count + keep.astype(jnp.int32), done, jnp.sum(found, dtype=jnp.int32)
+
+        return step
+
+    # all problems together while many find a neighbour
+    scene = jnp.broadcast_to(jnp.arange(b, dtype=jnp.int32)[None], (n, b))
+    agent = (px, py, vx, vy, radius, inv_th, margin)
+    dense = round_of(key, tie, per_agent.edges[:4], scene, agent)
+    zeros = jnp.zeros((n_slots, n_prob), jnp.float32)
+    state = ((zeros,) * 4, jnp.zeros((n, b), jnp.int32), key >= _BIG, jnp.int32(n_prob))
+    lines, count, done, _ = lax.while_loop(lambda s: s[3] * 4 > n_prob, dense, state)
+
+    # the rest in chunks of the problems with neighbours left
+    to_p = lambda x: x.reshape(x.shape[:-2] + (n_prob,))  # noqa: E731  (..., N, B) -> (..., P)
+    pending = jnp.any(~done, axis=0).reshape(n_prob)
+    size = max(1, -(-n_prob // 8))
+    n_chunks = -(-n_prob // size)
+    order = jnp.nonzero(pending, size=n_chunks * size, fill_value=n_prob)[0].astype(jnp.int32)
+    key_p, tie_p, done_p = to_p(key), to_p(tie), to_p(done)
+    agent_p = tuple(to_p(x) for x in agent)
+    scene_p = to_p(scene)
+
+    def run_chunk(c, carry):
+        lines, count = carry
+        sel = lax.dynamic_slice_in_dim(order, c * size, size)
+        rows = jnp.minimum(sel, n_prob - 1)
+        sc = scene_p[rows]
+        corners = tuple(jnp.take(x, sc, axis=1) for x in e[:4])  # (E, C): each problem's scene's edges
+        step = round_of(_columns(key_p, rows), _columns(tie_p, rows), corners, sc, tuple(x[rows] for x in agent_p))
+        part = (tuple(_columns(x, rows) for x in lines), count[rows], _columns(done_p, rows), jnp.int32(1))
+        part_lines, part_count = lax.while_loop(lambda s: s[3] > 0, step, part)[:2]
+        lines = tuple(x.at[:, sel].set(v, mode="drop") for x, v in zip(lines, part_lines))  # padding dropped
+        return lines, count.at[sel].set(part_count, mode="drop")
+
+    n_pending = jnp.sum(pending, dtype=jnp.int32)
+    return lax.fori_loop(0, (n_pending + size - 1) // size, run_chunk, (lines, to_p(count)))
 
 
 # -- the obstacle lines in the LPs
@@ -1107,7 +1149,12 @@ def _obstacle_lines(t: _ObstacleTable, px, py, vx, vy, radius, max_speed, inv_th
 class _ObstacleLP(NamedTuple):
     """The obstacle lines of every problem: (K, P) tables whose first ``count`` (P,) rows hold them in
     RVO2's order, and linearProgram1's interval on each (from the velocity disk and the obstacle lines
-    before it; ok: linearProgram1 succeeds)."""
+    before it; ok: linearProgram1 succeeds).
+
+    ``cols``: None, or the problems (C,) of a linearProgram3 chunk, whose ``count`` (C,) this then holds:
+    the tables stay every problem's and each row is read for the chunk's problems only when a loop reaches
+    it.  Gathering whole (K, C) tables instead, every round, would cost more than the rounds themselves (K is
+    the edge capacity; the loops stop at the chunk's largest count, a few lines)."""
 
     px: jax.Array
     py: jax.Array
@@ -1117,6 +1164,19 @@ class _ObstacleLP(NamedTuple):
     t_left: jax.Array
     t_right: jax.Array
     ok: jax.Array
+    cols: jax.Array | None = None
+
+    def line(self, i):
+        """(px, py, dx, dy) of row i."""
+        return self._read((self.px, self.py, self.dx, self.dy), i)
+
+    def interval(self, i):
+        """(t_left, t_right, ok) of row i."""
+        return self._read((self.t_left, self.t_right, self.ok), i)
+
+    def _read(self, tables, i):
+        rows = _row(tables, i)
+        return rows if self.cols is None else tuple(x[self.cols] for x in rows)
 
 
 def _row(tables, i):
@@ -1161,7 +1221,7 @@ def _obstacle_walk(obst: _ObstacleLP, radius, optx, opty, direction_opt):
 
     def step(i, state):
         rx, ry, fail = state
-        pix, piy, dix, diy, t_left, t_right, ok = _row(obst[:4] + obst[5:], i)
+        (pix, piy, dix, diy), (t_left, t_right, ok) = obst.line(i), obst.interval(i)
         hit = (i < obst.count) & (fail == obst.count) & (_det(dix, diy, pix - rx, piy - ry) > 0.0)
         if direction_opt:
             t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
@@ -1184,7 +1244,7 @@ def _obstacle_bounds(obst: _ObstacleLP, lines):
             jnp.zeros(px.shape, bool))
 
     def step(j, bounds):
-        pj = (x[None] for x in _row(obst[:4], j))
+        pj = (x[None] for x in obst.line(j))
         return _interval_update(bounds, *lines, *pj, (j < obst.count)[None])
 
     return lax.fori_loop(0, jnp.max(obst.count), step, init)
@@ -1198,7 +1258,7 @@ def _lp3_obstacle_part(obst: _ObstacleLP, radius, r, fail_o):
 
     def step(i, state):
         r, distance = state
-        pix, piy, dix, diy = _row(obst[:4], i)
+        pix, piy, dix, diy = obst.line(i)
         hit = (i >= fail_o) & (i < obst.count) & (_det(dix, diy, pix - jnp.real(r), piy - jnp.imag(r)) > distance)
         s, fail = _obstacle_walk(obst, radius, -diy, dix, True)
         r = jnp.where(hit & (fail == obst.count), s, r)
@@ -1249,10 +1309,12 @@ def _linear_program3(lines, rank, radius, r, fail_at, chunk, obst=None, fail_o=N
         pending = fail_key < _none_key(n)
 
     def lp3_step(t, s):
-        new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s, None if obst is None else _ObstacleLP(*t[6:]))
+        new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s, None if obst is None else obst._replace(count=t[6],
+                                                                                                  cols=t[7]))
         return new, new[2] < _none_key(n)
 
-    tables = tuple(lines) + (rank, radius) + (() if obst is None else tuple(obst))
+    problems = jnp.arange(r.shape[0], dtype=jnp.int32)
+    tables = tuple(lines) + (rank, radius) + (() if obst is None else (obst.count, problems))
     state = (r, distance, fail_key)
     return _worklist(lp3_step, tables, state, pending, n, chunk)[0]
 
