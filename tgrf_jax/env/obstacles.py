@@ -150,22 +150,35 @@ def _segments_cross(px, py, qx, qy, ax, ay, bx, by):
     return (s1 * s2 <= 0) & (s3 * s4 <= 0) & ~((s1 == 0) & (s2 == 0))
 
 
+# The point-against-edge queries below loop over the edges in Python, so that each is one fused, vectorised loop
+# over the points with a running result: a (..., E) table reduced over its small minor axis vectorises poorly
+# on XLA:CPU (under vmap especially) and costs several times more.
+
+
 def _inside_slots(px, py, obstacles: Obstacles):
     """Whether points (...) lie inside each polygon slot (..., M), by the crossing number of a ray towards +x."""
     ax, ay, bx, by, valid = _slot_edges(obstacles)
-    px, py = px[..., None, None], py[..., None, None]
-    straddle = (ay > py) != (by > py)
-    # The crossing lies right of p: compared by multiplying out the division, by the sign of dy.
-    side = _cross(bx - ax, by - ay, px - ax, py - ay)
-    crosses = straddle & valid & jnp.where(by > ay, side > 0, side < 0)
-    odd = (jnp.sum(crosses, axis=-1, dtype=jnp.int32) % 2) == 1
-    return odd & (obstacles.num_vertices >= 3)
+    slots = []
+    for m in range(ax.shape[0]):
+        odd = jnp.zeros(jnp.shape(px), bool)
+        for i in range(ax.shape[1]):
+            straddle = (ay[m, i] > py) != (by[m, i] > py)
+            # The crossing lies right of p: compared by multiplying out the division, by the sign of dy.
+            side = _cross(bx[m, i] - ax[m, i], by[m, i] - ay[m, i], px - ax[m, i], py - ay[m, i])
+            odd = odd ^ (straddle & valid[m, i] & jnp.where(by[m, i] > ay[m, i], side > 0, side < 0))
+        slots.append(odd & (obstacles.num_vertices[m] >= 3))
+    if not slots:
+        return jnp.zeros(jnp.shape(px) + (0,), bool)
+    return jnp.stack(slots, axis=-1)
 
 
 def _sq_distance(px, py, obstacles: Obstacles):
     ax, ay, bx, by, valid = _flat_edges(obstacles)
-    _, _, sq = _closest_on_segment(px[..., None], py[..., None], ax, ay, bx, by)
-    return jnp.min(jnp.where(valid, sq, jnp.inf), axis=-1, initial=jnp.inf)
+    best = jnp.full(jnp.shape(px), jnp.inf, jnp.float32)
+    for e in range(ax.shape[0]):
+        sq = _closest_on_segment(px, py, ax[e], ay[e], bx[e], by[e])[2]
+        best = jnp.where(valid[e], jnp.minimum(best, sq), best)
+    return best
 
 
 def distance_to_obstacles(points, obstacles: Obstacles):
@@ -192,14 +205,19 @@ def swept_distance(p0, p1, obstacles: Obstacles):
     For collision checks of a disc moving from p0 to p1 in one step: a fast robot cannot tunnel through a thin
     wall between two clear positions. Non-crossing segments are nearest at an endpoint of one of them.
     """
-    ax, ay, bx, by, valid = _flat_edges(obstacles)
-    px, py, qx, qy = p0[..., 0, None], p0[..., 1, None], p1[..., 0, None], p1[..., 1, None]
-    sq = jnp.minimum(
-        jnp.minimum(_closest_on_segment(px, py, ax, ay, bx, by)[2], _closest_on_segment(qx, qy, ax, ay, bx, by)[2]),
-        jnp.minimum(_closest_on_segment(ax, ay, px, py, qx, qy)[2], _closest_on_segment(bx, by, px, py, qx, qy)[2]),
-    )
-    sq = jnp.where(_segments_cross(px, py, qx, qy, ax, ay, bx, by), 0.0, sq)
-    return jnp.sqrt(jnp.min(jnp.where(valid, sq, jnp.inf), axis=-1, initial=jnp.inf))
+    edges = _flat_edges(obstacles)
+    px, py, qx, qy = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
+    best = jnp.full(px.shape, jnp.inf, jnp.float32)
+    for ax, ay, bx, by, valid in zip(*edges):
+        sq = jnp.minimum(
+            jnp.minimum(_closest_on_segment(px, py, ax, ay, bx, by)[2],
+                        _closest_on_segment(qx, qy, ax, ay, bx, by)[2]),
+            jnp.minimum(_closest_on_segment(ax, ay, px, py, qx, qy)[2],
+                        _closest_on_segment(bx, by, px, py, qx, qy)[2]),
+        )
+        sq = jnp.where(_segments_cross(px, py, qx, qy, ax, ay, bx, by), 0.0, sq)
+        best = jnp.where(valid, jnp.minimum(best, sq), best)
+    return jnp.sqrt(best)
 
 
 def line_of_sight(origin, targets, obstacles: Obstacles):
@@ -208,11 +226,12 @@ def line_of_sight(origin, targets, obstacles: Obstacles):
     Occlusion: a human behind a wall is not seen. Touching an edge counts as crossing it (a sight line through
     a corner exactly is blocked); a sight line running along an edge is blocked by the edges next to it only.
     """
-    ax, ay, bx, by, valid = _flat_edges(obstacles)
     ox, oy = origin[0], origin[1]
-    tx, ty = targets[..., 0, None], targets[..., 1, None]
-    blocked = valid & _segments_cross(ox, oy, tx, ty, ax, ay, bx, by)
-    return ~jnp.any(blocked, axis=-1)
+    tx, ty = targets[..., 0], targets[..., 1]
+    blocked = jnp.zeros(tx.shape, bool)
+    for ax, ay, bx, by, valid in zip(*_flat_edges(obstacles)):
+        blocked = blocked | (valid & _segments_cross(ox, oy, tx, ty, ax, ay, bx, by))
+    return ~blocked
 
 
 def lidar_scan(origin, heading, obstacles: Obstacles, circle_pos, circle_radius, circle_mask, *, num_rays: int,
