@@ -67,13 +67,14 @@ def train(t):
     # compiled once, as a run compiles it; each chunk's output is the next chunk's input
     compiled = t.run_chunk.lower(initial, np.int32(1)).compile()
     state, _ = compiled(initial, np.int32(2))
+    donated = all(x.is_deleted() for x in jax.tree_util.tree_leaves(initial.params))  # updated in place
     state, metrics = compiled(state, np.int32(1))
     return {
         "placement": shards.describe(2, t.trainer.mesh), "mesh_is_none": t.trainer.mesh is None,
         "params": flat(state.params), "initial_params": initial_params,
         "metrics": {k: float(v) for k, v in metrics.items()},
         "obs": np.asarray(state.obs.humans).ravel().tolist(), "obs_envs": int(state.obs.humans.shape[0]),
-        "update": int(state.update),
+        "update": int(state.update), "donated": donated,
     }
 
 cfg = TrainConfig.from_dict(json.loads(sys.argv[1]))
@@ -99,6 +100,7 @@ def test_sharded_training_is_deterministic_and_learns_something(placements):
     params, initial = np.asarray(a["params"]), np.asarray(a["initial_params"])
     assert np.all(np.isfinite(params)) and np.abs(params - initial).max() > 1e-4
     assert a["obs_envs"] == 8 and a["update"] == 3  # whole-batch layout between chunks
+    assert a["donated"] and placements["mesh"]["donated"]  # a chunk consumes the state it is given
 
 
 def test_shards_on_two_devices_match_shards_vmapped_on_one(placements):
