@@ -280,3 +280,12 @@ def test_huge_and_non_finite_actions_keep_their_direction(action, direction):
     direction = np.asarray(direction) / np.linalg.norm(direction)
     expected_speed = min(1.0, float(np.linalg.norm(np.nan_to_num(np.asarray(action, np.float64), nan=0.0))))
     np.testing.assert_allclose(vel, direction * expected_speed, atol=1e-6)
+
+
+def test_quoted_number_in_a_python_dict_is_refused():
+    """A dict given in Python, not read from YAML: "5" is text, not the integer 5, as a quoted YAML value is."""
+    from tgrf_jax.config import ConfigError
+    from tgrf_jax.env import CrowdNavEnv
+
+    with pytest.raises(ConfigError, match=r"^env\.num_humans = '5' must be an integer \(it is quoted text"):
+        CrowdNavEnv({"num_humans": "5"})

@@ -290,3 +290,49 @@ def test_a_non_finite_loss_stops_training_and_keeps_the_checkpoints(tmp_path, mo
                                                       r"checkpoints up to update 2 in .* are kept"):
         train_lib.train(config, dataset, tmp_path / "run", log=lambda s: None)
     assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir()) == ["2"]
+
+
+def test_cli_from_step_continues_from_that_checkpoint(tmp_path, capsys):
+    """`tgrf-predictor train --from-step N`, from the command line to the resumed training: it restores checkpoint
+    N (not the latest), deletes the later ones and trains their updates again, bit-identically; a step with no
+    intact checkpoint is one line of error."""
+    from helpers import flip_a_bit
+
+    data_lib.save_dataset(tmp_path / "d.npz", synthetic())
+    run = tmp_path / "run"
+    argv = ["train", "--dataset", str(tmp_path / "d.npz"), "--run-dir", str(run), "--updates", "4",
+            "--batch-size", "4", "--log-every", "2", "--checkpoint-every", "2", "--decay-every", "2",
+            "--eval-windows", "8"]
+
+    def train(*extra):
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main(argv + list(extra))
+        return exit_info.value.code, capsys.readouterr()
+
+    def params():
+        with np.load(run / "gst.npz") as f:
+            return {k: f[k] for k in f.files}
+
+    assert train()[0] == 0
+    first = params()
+    code, out = train("--from-step", "2")
+    assert code == 0, out.err
+    assert f"resumed from {run / 'checkpoints'} at update 2" in out.out
+    assert "update      4/4" in out.out and "update      2/4" not in out.out  # updates 3-4 only, trained again
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["2", "4"]
+    assert json.loads((run / "run.json").read_text())["train"]["updates"] == 4
+    again = params()
+    assert again.keys() == first.keys()
+    for k in first:
+        np.testing.assert_array_equal(again[k], first[k])
+
+    for step, message in [("3", (f"--from-step 3: {str(run / 'checkpoints')!r} holds no checkpoint of update 3; "
+                                 "it holds: 2, 4")),
+                          ("2", f"checkpoint {str(run / 'checkpoints' / '2')!r} (step 2) is damaged")]:
+        if step == "2":
+            flip_a_bit(run / "checkpoints" / "2")
+        code, out = train("--from-step", step)
+        assert code == 2
+        assert out.err.startswith("tgrf-predictor: error: ") and message in out.err, out.err
+        assert len(out.err.splitlines()) == 1 and "Traceback" not in out.err, out.err
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["2", "4"]  # nothing deleted by a refusal

@@ -261,6 +261,40 @@ def test_damaged_checkpoint_names_intact_steps_and_resumes_from_one(sweep, tmp_p
     assert (out / "summary.md").read_text() == (sweep / "summary.md").read_text()
 
 
+def _damage_a_middle_row(out):
+    """Line 18 of 37 (update 6, before the last checkpoint, so it is checked): a word for its loss."""
+    lines = (out / "metrics.csv").read_text().splitlines(keepends=True)
+    fields = lines[17].split(",")
+    fields[lines[0].split(",").index("loss")] = "abc"
+    lines[17] = ",".join(fields)
+    (out / "metrics.csv").write_text("".join(lines))
+
+
+@pytest.mark.parametrize("damage, error", [
+    (_damage_a_middle_row, "'{out}/metrics.csv' is damaged: line 18: loss = 'abc' is not a number"),
+    (lambda out: (out / "metrics.csv").write_text("".join((out / "metrics.csv").read_text().splitlines(True)[1:])),
+     "'{out}/metrics.csv' is damaged: line 1 is not its header (expected run,point,seed,reward.h_disc,...)"),
+    (lambda out: shutil.rmtree(out / "runs" / RUN),
+     "run directory '{out}/runs/" + RUN + "' of the sweep is missing or has no config.yaml; restore it"),
+], ids=["non-numeric value", "no header", "run directory deleted"])
+def test_resume_of_a_damaged_finished_sweep_names_the_damage(sweep, tmp_path, capsys, damage, error):
+    """A finished sweep whose bookkeeping was damaged is not reported done: exit 2, one line naming the file, and
+    nothing compiled, trained or rewritten."""
+    out = tmp_path / "copy"
+    shutil.copytree(sweep, out)
+    damage(out)
+    kept = {p: p.read_bytes() for p in [*out.glob("*.csv"), *out.glob("*.md")]}
+    log = (out / "progress.log").read_text()
+    with CompileCounter() as counter:
+        assert main(["--resume", str(out)]) == 2
+    std = capsys.readouterr()
+    lines = std.err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"tgrf-sweep: error: {error.format(out=out)}"), std.err
+    assert "done:" not in std.out and "done:" not in (out / "progress.log").read_text()[len(log):]
+    assert counter.compiles == 0
+    assert {p: p.read_bytes() for p in kept} == kept
+
+
 def test_sharded_over_4_devices_matches_unsharded(sweep, tmp_path):
     """The same sweep on 4 fake CPU devices (6 runs padded to 8, 2 per device) in a subprocess."""
     out = tmp_path / "sharded"
