@@ -374,6 +374,15 @@ def _lp2_start(radius, optx, opty, direction_opt):
     return jnp.where(clamp, (optx * inv) * radius, optx), jnp.where(clamp, (opty * inv) * radius, opty)
 
 
+def _lp1_optimum(optx, opty, pix, piy, dix, diy, t_left, t_right, direction_opt):
+    """linearProgram1's optimum on its line p + t d within [t_left, t_right]: the end pointing along the
+    direction ``opt`` (direction_opt), else the point nearest to ``opt``, clamped."""
+    if direction_opt:
+        return jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
+    t = dix * (optx - pix) + diy * (opty - piy)
+    return jnp.where(t < t_left, t_left, jnp.where(t > t_right, t_right, t))
+
+
 def _next_key(radius, take, key, r, px, py, dx, dy, valid, rank, depth):
     """Packed key of the lowest-ranked valid line ranked after ``key`` whose penetration det(d, p - r) exceeds
     depth, where ``take`` holds (none elsewhere): where RVO2's loop does work next.  One loop."""
@@ -414,11 +423,7 @@ def _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, state, bou
     t_left, t_right = _computed_once(_lp1_bounds, radius, key, *lines, valid, rank, *bounds)
     ok = t_left <= t_right
     pix, piy, dix, diy = (_pick_row(x, _key_slot(key, n)) for x in lines)
-    if direction_opt:
-        t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
-    else:
-        t = dix * (optx - pix) + diy * (opty - piy)
-        t = jnp.where(t < t_left, t_left, jnp.where(t > t_right, t_right, t))
+    t = _lp1_optimum(optx, opty, pix, piy, dix, diy, t_left, t_right, direction_opt)
     take = found & ok
     r = jnp.where(take, lax.complex(pix + t * dix, piy + t * diy), r)
     fail_at = jnp.where(found & ~ok, _key_rank(key, n), fail_at)
@@ -1223,11 +1228,7 @@ def _obstacle_walk(obst: _ObstacleLP, radius, optx, opty, direction_opt):
         rx, ry, fail = state
         (pix, piy, dix, diy), (t_left, t_right, ok) = obst.line(i), obst.interval(i)
         hit = (i < obst.count) & (fail == obst.count) & (_det(dix, diy, pix - rx, piy - ry) > 0.0)
-        if direction_opt:
-            t = jnp.where(optx * dix + opty * diy > 0.0, t_right, t_left)
-        else:
-            t = dix * (optx - pix) + diy * (opty - piy)
-            t = jnp.where(t < t_left, t_left, jnp.where(t > t_right, t_right, t))
+        t = _lp1_optimum(optx, opty, pix, piy, dix, diy, t_left, t_right, direction_opt)
         take = hit & ok
         rx, ry = jnp.where(take, pix + t * dix, rx), jnp.where(take, piy + t * diy, ry)
         return rx, ry, jnp.where(hit & ~ok, i, fail)
