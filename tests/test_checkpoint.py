@@ -10,7 +10,7 @@ import orbax.checkpoint as ocp
 import pytest
 from helpers import flip_a_bit
 
-from tgrf_jax.storage.checkpoint import Checkpointer, CheckpointError, tree_digest
+from tgrf_jax.storage.checkpoint import DATA_FILE_BYTES, Checkpointer, CheckpointError, tree_digest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -100,6 +100,32 @@ def test_a_step_without_a_checksum_is_refused_not_restored_unverified(tmp_path):
     assert tree_digest(ckpt.restore(plain(0))) == tree_digest(plain(4))
     with pytest.raises(CheckpointError, match=r"\(step 2\) is damaged: its checksum"):
         ckpt.restore(plain(0), 2)
+    ckpt.close()
+
+
+def test_no_data_file_of_a_large_step_grows_past_its_cap(tmp_path):
+    big = {"rollout": np.random.default_rng(0).random((5, 400_000), np.float32),  # 8 MB, one array
+           "params": {f"w{i}": np.full((300, 300), i, np.float32) for i in range(8)}}  # 2.9 MB in small arrays
+    ckpt = Checkpointer(tmp_path)
+    ckpt.save(1, big)
+    sizes = [f.stat().st_size for f in ckpt.path(1).rglob("*") if f.is_file()]
+    assert sum(sizes) > 5 * DATA_FILE_BYTES  # random floats barely compress: the cap, not compression, splits them
+    assert max(sizes) < 1.5 * DATA_FILE_BYTES
+    assert tree_digest(ckpt.restore(big)) == tree_digest(big)
+    ckpt.close()
+
+
+def test_a_step_written_in_one_file_per_item_still_restores(tmp_path):
+    """Steps saved before data files were capped (orbax's StandardSave, one large data file) resume as they are."""
+    legacy = ocp.CheckpointManager(tmp_path, options=ocp.CheckpointManagerOptions(enable_async_checkpointing=False),
+                                   item_names=("default", "digest"))
+    stored = {**state(3), "humans": np.zeros(1, np.float32)}  # zero-size arrays were stored as one element then too
+    legacy.save(3, args=ocp.args.Composite(default=ocp.args.StandardSave(stored),
+                                           digest=ocp.args.JsonSave({"sha256": tree_digest(state(3))})), force=True)
+    legacy.wait_until_finished()
+    legacy.close()
+    ckpt = Checkpointer(tmp_path)
+    assert tree_digest(ckpt.restore(state(0))) == tree_digest(state(3))
     ckpt.close()
 
 

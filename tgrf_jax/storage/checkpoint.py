@@ -14,6 +14,10 @@ asks for another, so paths and shapes are compared first, and a mismatch says wh
 A step without its "digest" item (deleted, or written before checksums existed) cannot be verified, so it counts
 as damaged: restoring it unverified could resume silently from a flipped bit.
 
+No data file of a step grows much past `DATA_FILE_BYTES` (1 MiB): arrays are cut into chunks of half that size, and
+orbax's OCDBT store starts a new data file once one holds that much, so a run directory fits storage that caps file sizes: a git host, an artifact
+store, a mail attachment.
+
 Orbax cannot store zero-size arrays (a crowd of 0 humans); they are stored as one element and restored in the
 template's shape. A missing, damaged or unfitting checkpoint raises `CheckpointError` naming the path.
 """
@@ -33,6 +37,7 @@ import orbax.checkpoint as ocp
 
 STATE_ITEM = "default"  # orbax's name for a single item: steps written before checksums read the same
 DIGEST_ITEM = "digest"
+DATA_FILE_BYTES = 1 << 20
 
 
 class CheckpointError(RuntimeError):
@@ -139,6 +144,23 @@ def _quiet_orbax():
         logger.setLevel(level)
 
 
+class _SmallChunkWarning(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "target_byte_size too small" not in record.getMessage()
+
+
+@contextlib.contextmanager
+def _without_small_chunk_warning():
+    """Orbax warns on every save that chunks under 1 MiB may read slowly from cloud storage; the chunks are that
+    small on purpose (they bound the data files), and a state of a few MB reads in milliseconds either way."""
+    logger, quiet = logging.getLogger("absl"), _SmallChunkWarning()
+    logger.addFilter(quiet)
+    try:
+        yield
+    finally:
+        logger.removeFilter(quiet)
+
+
 class Checkpointer:
     def __init__(self, directory, keep: int = 3, create: bool = True):
         self.directory = pathlib.Path(directory).resolve()
@@ -167,9 +189,12 @@ class Checkpointer:
         state = jax.device_get(state)
         storable = jax.tree_util.tree_map(
             lambda x: np.zeros(1, np.asarray(x).dtype) if 0 in _shape(x) else x, state)
-        args = ocp.args.Composite(**{STATE_ITEM: ocp.args.StandardSave(storable),
+        chunking = jax.tree_util.tree_map(lambda _: ocp.SaveArgs(chunk_byte_size=DATA_FILE_BYTES // 2), storable)
+        state_args = ocp.args.PyTreeSave(storable, save_args=chunking, ocdbt_target_data_file_size=DATA_FILE_BYTES)
+        args = ocp.args.Composite(**{STATE_ITEM: state_args,
                                      DIGEST_ITEM: ocp.args.JsonSave({"sha256": tree_digest(state)})})
-        self._manager.save(int(step), args=args, force=True)
+        with _without_small_chunk_warning():
+            self._manager.save(int(step), args=args, force=True)
         self._manager.wait_until_finished()
         return self.path(step)
 
@@ -242,7 +267,10 @@ class Checkpointer:
             lambda x: jax.ShapeDtypeStruct(_stored_shape(x), x.dtype) if hasattr(x, "shape") else x, template)
         if not (path / DIGEST_ITEM).is_dir():
             raise _Damaged(f"its checksum ({DIGEST_ITEM}/) is missing, so its content cannot be verified")
-        items = {STATE_ITEM: ocp.args.StandardRestore(abstract), DIGEST_ITEM: ocp.args.JsonRestore()}
+        as_numpy = jax.tree_util.tree_map(lambda x: ocp.RestoreArgs(restore_type=np.ndarray, dtype=x.dtype) if isinstance(x, jax.ShapeDtypeStruct) else None,
+            abstract)
+        items = {STATE_ITEM: ocp.args.PyTreeRestore(abstract, restore_args=as_numpy),
+                 DIGEST_ITEM: ocp.args.JsonRestore()}
         with _quiet_orbax():
             try:
                 out = self._manager.restore(step, args=ocp.args.Composite(**items))
