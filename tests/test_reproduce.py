@@ -465,3 +465,37 @@ def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
     # Other settings into the same directory are refused.
     with pytest.raises(ConfigError, match="holds results of this experiment with other settings"):
         runner.reproduce(exp.shrunk(steps=512), out)
+
+
+def _flat(d, prefix=""):
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def test_regime_isolation_rows_each_put_back_one_setting_of_the_paper_regime():
+    """Every row of `regime_isolate` is the paper regime's `truth_small` row with one setting (a group, for the
+    batch shape) at the default, apart from the budget and the test schedule; the default really differs there."""
+    regime = spec_lib.load("paper_regime")
+    base = _flat(spec_lib.sweep_spec(regime, regime.row("truth_small")).base)
+    default = _flat(spec_lib.sweep_spec(spec_lib.load("table1"), spec_lib.load("table1").row("truth")).base)
+    schedule = {"ppo.total_steps", "run.eval_every", "run.checkpoint_every"}
+    expected = {
+        "norm_value": {"ppo.norm_value"},
+        "log_std": {"network.init_log_std"},
+        "goal_frame": {"network.frame"},
+        "batch": {"ppo.num_envs", "ppo.num_steps", "ppo.update_epochs", "ppo.num_minibatches", "ppo.reset_ratio"},
+    }
+    isolate = spec_lib.load("regime_isolate")
+    assert [r.name for r in isolate.rows] == list(expected)
+    for row in isolate.rows:
+        cfg = _flat(spec_lib.sweep_spec(isolate, row).base)
+        changed = {k for k in base if cfg[k] != base[k]} - schedule
+        assert changed == expected[row.name], row.name
+        assert all(cfg[k] == default[k] != base[k] for k in changed), row.name
+        assert cfg["ppo.num_envs"] * cfg["ppo.num_steps"] * (cfg["ppo.total_steps"] // (
+            cfg["ppo.num_envs"] * cfg["ppo.num_steps"])) == pytest.approx(3.0e6, rel=1e-3)
