@@ -70,8 +70,13 @@ def _recorded(source, episodes: int = 3, steps: int = 40):
         for t in range(steps):
             o, r, h = jax.device_get((obs, state.robot, state.humans))
             obs_list.append((o.robot_node, o.robot_vel, o.humans, o.human_mask.astype(np.float32)))
-            world.append((np.array([r.pos[0], r.pos[1], r.heading, r.vel[0], r.vel[1]]), np.asarray(r.goal),
-                          np.concatenate([h.pos, h.vel, h.radius[:, None]], axis=1)))
+            world.append(
+                (
+                    np.array([r.pos[0], r.pos[1], r.heading, r.vel[0], r.vel[1]]),
+                    np.asarray(r.goal),
+                    np.concatenate([h.pos, h.vel, h.radius[:, None]], axis=1),
+                )
+            )
             to_goal = r.goal - r.pos
             action = jnp.asarray(to_goal / max(np.linalg.norm(to_goal), 1e-6), jnp.float32)
             obs, state, _, term, trunc, _ = step(jax.random.fold_in(key, t), state, action, params)
@@ -93,9 +98,15 @@ def latency(name: str, source, decisions: int, out_dir) -> dict:
     export_s = time.perf_counter() - t0
     obs_list, world = _recorded(source)
     step = PolicyStep(source.config, source.params)
-    row = {"policy": name, "network": f"{source.config.network.name}/{source.config.network.size}",
-           "params": int(step.net.num_params(source.params)), "predictor": source.config.env.predictor,
-           "export_s": round(export_s, 1), "decision": {}, "navigator": {}}
+    row = {
+        "policy": name,
+        "network": f"{source.config.network.name}/{source.config.network.size}",
+        "params": int(step.net.num_params(source.params)),
+        "predictor": source.config.env.predictor,
+        "export_s": round(export_s, 1),
+        "decision": {},
+        "navigator": {},
+    }
     for runtime in ("jax", "onnx", "stablehlo"):
         run = make_runtime(exported, runtime, threads=1)
         state = [np.zeros(step.state_size, np.float32)]
@@ -104,8 +115,11 @@ def latency(name: str, source, decisions: int, out_dir) -> dict:
             _, state[0] = run(*obs_list[i % len(obs_list)], state[0])
 
         row["decision"][runtime] = _time_each(decide, decisions)
-        print(f"  {name:>16s} {runtime:>9s}: median {row['decision'][runtime]['median_ms']:.3f} ms, "
-              f"p99 {row['decision'][runtime]['p99_ms']:.3f} ms", flush=True)
+        print(
+            f"  {name:>16s} {runtime:>9s}: median {row['decision'][runtime]['median_ms']:.3f} ms, "
+            f"p99 {row['decision'][runtime]['p99_ms']:.3f} ms",
+            flush=True,
+        )
     for runtime in ("jax", "onnx"):
         nav = Navigator(exported, runtime=runtime)
         ids = list(range(source.config.env.num_humans))
@@ -117,8 +131,11 @@ def latency(name: str, source, decisions: int, out_dir) -> dict:
             nav.act(robot, goal, humans, ids=ids)
 
         row["navigator"][runtime] = _time_each(act, decisions)
-        print(f"  {name:>16s} Navigator.act ({runtime}): median {row['navigator'][runtime]['median_ms']:.3f} ms, "
-              f"p99 {row['navigator'][runtime]['p99_ms']:.3f} ms", flush=True)
+        print(
+            f"  {name:>16s} Navigator.act ({runtime}): median {row['navigator'][runtime]['median_ms']:.3f} ms, "
+            f"p99 {row['navigator'][runtime]['p99_ms']:.3f} ms",
+            flush=True,
+        )
     return row
 
 
@@ -158,10 +175,17 @@ def gym_throughput(num_envs: int, steps: int, rounds: int = 3) -> dict:
             fn()
             if r:
                 best[name] = min(best[name], time.perf_counter() - t0)
-    result = {"num_envs": num_envs, "steps": steps, "gym_env_steps_per_s": num_envs * steps / best["gym"],
-              "native_env_steps_per_s": num_envs * steps / best["native"]}
-    print(f"  gym VectorEnv B={num_envs}: {result['gym_env_steps_per_s']:,.0f} env-steps/s; native step_batch: "
-          f"{result['native_env_steps_per_s']:,.0f} env-steps/s", flush=True)
+    result = {
+        "num_envs": num_envs,
+        "steps": steps,
+        "gym_env_steps_per_s": num_envs * steps / best["gym"],
+        "native_env_steps_per_s": num_envs * steps / best["native"],
+    }
+    print(
+        f"  gym VectorEnv B={num_envs}: {result['gym_env_steps_per_s']:,.0f} env-steps/s; native step_batch: "
+        f"{result['native_env_steps_per_s']:,.0f} env-steps/s",
+        flush=True,
+    )
     return result
 
 
@@ -184,18 +208,31 @@ def main(argv=None) -> int:
 
     decisions = args.decisions or (1000 if args.quick else 5000)
     paper_config = TrainConfig.from_dict({"network": {"size": "paper"}})
-    paper = PolicySource(paper_config, jax.device_get(make_network_for(paper_config).init(jax.random.PRNGKey(0))),
-                         {"benchmark": "untrained paper-size HH Attn"})
-    policies = {"small-const_vel": load_source("table1-const_vel-tgrf"), "small-gst": load_source("table1-gst-tgrf"),
-                "paper-const_vel": paper}
+    paper = PolicySource(
+        paper_config,
+        jax.device_get(make_network_for(paper_config).init(jax.random.PRNGKey(0))),
+        {"benchmark": "untrained paper-size HH Attn"},
+    )
+    policies = {
+        "small-const_vel": load_source("table1-const_vel-tgrf"),
+        "small-gst": load_source("table1-gst-tgrf"),
+        "paper-const_vel": paper,
+    }
     print(f"one core ({args.core}), {decisions} decisions per row", flush=True)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, source in policies.items():
             rows.append(latency(name, source, decisions, tmp))
     gym = gym_throughput(args.gym_envs, 20 if args.quick else 50)
-    payload = {"benchmark": "deploy_latency", "machine": machine_info(), "core": args.core, "decisions": decisions,
-               "rows": rows, "gym": gym, "date": time.strftime("%Y-%m-%d")}
+    payload = {
+        "benchmark": "deploy_latency",
+        "machine": machine_info(),
+        "core": args.core,
+        "decisions": decisions,
+        "rows": rows,
+        "gym": gym,
+        "date": time.strftime("%Y-%m-%d"),
+    }
     write_json(args.out, payload)
     return 0
 

@@ -70,8 +70,13 @@ def make_sharded_runner(env: CrowdNavEnv, n_steps: int, num_resets: int, mesh):
         return scan(jax.random.fold_in(key, jax.lax.axis_index(ENV_AXIS)), obs, state)
 
     env_spec = P(ENV_AXIS)
-    run = jax.shard_map(shard, mesh=mesh, in_specs=(P(), env_spec, env_spec),
-                        out_specs=((env_spec, env_spec), env_spec), check_vma=False)
+    run = jax.shard_map(
+        shard,
+        mesh=mesh,
+        in_specs=(P(), env_spec, env_spec),
+        out_specs=((env_spec, env_spec), env_spec),
+        check_vma=False,
+    )
     return jax.jit(run)
 
 
@@ -102,15 +107,30 @@ def gst_flops_per_env_step(num_humans: int) -> float:
     return float(cost["flops"])
 
 
-def measure(policy: str, num_humans: int, batch: int, n_steps: int, repeats: int, plain: bool = True,
-            mesh=None, predictor: str = "const_vel", extra: dict | None = None) -> dict:
+def measure(
+    policy: str,
+    num_humans: int,
+    batch: int,
+    n_steps: int,
+    repeats: int,
+    plain: bool = True,
+    mesh=None,
+    predictor: str = "const_vel",
+    extra: dict | None = None,
+) -> dict:
     """One grid point: `vmap(step)` (unless not `plain`) and, from batch 16, `step_batch`, also over the devices
     of `mesh` (if given and the batch splits into slices of at least 16). `extra`: more env settings."""
     env = CrowdNavEnv({"num_humans": num_humans, "human_policy": policy, "predictor": predictor, **(extra or {})})
     params = env.default_params
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(0), batch), params)
-    row = {"policy": policy, "num_humans": num_humans, "batch": batch, "steps_per_call": n_steps,
-           "predictor": predictor, **(extra or {})}
+    row = {
+        "policy": policy,
+        "num_humans": num_humans,
+        "batch": batch,
+        "steps_per_call": n_steps,
+        "predictor": predictor,
+        **(extra or {}),
+    }
     runners = {}
     if plain or batch < 16:
         runners["env_steps_per_s"] = make_runner(env, n_steps)[0]
@@ -144,9 +164,12 @@ def breakdown(policy: str, num_humans: int, batch: int, repeats: int, extra: dic
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     actions = jax.vmap(StraightPolicy.action)(obs)
     pieces = {
-        "human_policy": (lambda s: humans_lib.human_velocities(s.humans, None, params, env.config,
-                                                               s.orca_neighbor_dist, s.obstacles,
-                                                               s.obstacle_table), (state,)),
+        "human_policy": (
+            lambda s: humans_lib.human_velocities(
+                s.humans, None, params, env.config, s.orca_neighbor_dist, s.obstacles, s.obstacle_table
+            ),
+            (state,),
+        ),
         "reset": (lambda k: env.reset(k, params), (keys,)),
         "step_without_reset": (lambda k, s, a: env.step_env(k, s, a, params), (keys, state, actions)),
         "step_with_auto_reset": (lambda k, s, a: env.step(k, s, a, params), (keys, state, actions)),
@@ -179,16 +202,28 @@ def obstacle_costs(mesh, out) -> None:
         row["label"] = label
         rows.append(row)
         rate = row.get("step_batch_devices_env_steps_per_s", row["step_batch_env_steps_per_s"])
-        row["ratio_to_open_space"] = rate / rows[0].get("step_batch_devices_env_steps_per_s",
-                                                        rows[0]["step_batch_env_steps_per_s"])
-        print(f"{label:>30} {row['compile_s']:>9.1f} {row['step_batch_env_steps_per_s']:>12,.0f} "
-              f"{row.get('step_batch_devices_env_steps_per_s', float('nan')):>14,.0f} "
-              f"{row['ratio_to_open_space']:>6.2f}", flush=True)
+        row["ratio_to_open_space"] = rate / rows[0].get(
+            "step_batch_devices_env_steps_per_s", rows[0]["step_batch_env_steps_per_s"]
+        )
+        print(
+            f"{label:>30} {row['compile_s']:>9.1f} {row['step_batch_env_steps_per_s']:>12,.0f} "
+            f"{row.get('step_batch_devices_env_steps_per_s', float('nan')):>14,.0f} "
+            f"{row['ratio_to_open_space']:>6.2f}",
+            flush=True,
+        )
     parts = {label: breakdown("orca", 20, batch, repeats, extra) for label, extra in OBSTACLE_ROWS[::2]}
     for label, ms in parts.items():
         print(f"where the time goes, {label}, batch {batch} (ms per batched call): {ms}")
-    write_json(out, {"benchmark": "env_throughput", "obstacles": True, "machine": info, "results": rows,
-                     "breakdown_ms_batch1024": parts})
+    write_json(
+        out,
+        {
+            "benchmark": "env_throughput",
+            "obstacles": True,
+            "machine": info,
+            "results": rows,
+            "breakdown_ms_batch1024": parts,
+        },
+    )
 
 
 def scan_length(batch: int, quick: bool) -> int:
@@ -200,24 +235,36 @@ def scan_length(batch: int, quick: bool) -> int:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true",
-                        help="20 humans: ORCA at batches 128 and 1024, Social Force at 1024; step_batch only, "
-                             "shorter scans, no breakdown (< 1 minute)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="20 humans: ORCA at batches 128 and 1024, Social Force at 1024; step_batch only, "
+        "shorter scans, no breakdown (< 1 minute)",
+    )
     parser.add_argument("--out", help="write results as JSON here")
-    parser.add_argument("--gst-only", action="store_true",
-                        help="only 20 ORCA humans at batches 256 and 1024, const_vel against the learned gst "
-                             "predictor")
-    parser.add_argument("--obstacles", action="store_true",
-                        help="20 ORCA humans at batch 1024 on the trainer's path: the paper's open space against "
-                             "random_obstacles (up to 8 boxes), each with and without a 180-ray LiDAR, and what "
-                             "the obstacles cost in the ORCA solve")
-    parser.add_argument("--devices", type=int, default=len(os.sched_getaffinity(0)),
-                        help="CPU devices for the sharded step_batch column (default: one per core; 1: skip it)")
+    parser.add_argument(
+        "--gst-only",
+        action="store_true",
+        help="only 20 ORCA humans at batches 256 and 1024, const_vel against the learned gst predictor",
+    )
+    parser.add_argument(
+        "--obstacles",
+        action="store_true",
+        help="20 ORCA humans at batch 1024 on the trainer's path: the paper's open space against "
+        "random_obstacles (up to 8 boxes), each with and without a 180-ray LiDAR, and what "
+        "the obstacles cost in the ORCA solve",
+    )
+    parser.add_argument(
+        "--devices",
+        type=int,
+        default=len(os.sched_getaffinity(0)),
+        help="CPU devices for the sharded step_batch column (default: one per core; 1: skip it)",
+    )
     args = parser.parse_args(argv)
     configure_cpu(args.devices)  # before JAX touches its backend
     mesh = None
     if args.devices > 1 and len(jax.devices()) >= args.devices:
-        mesh = jax.sharding.Mesh(jax.devices()[:args.devices], (ENV_AXIS,))
+        mesh = jax.sharding.Mesh(jax.devices()[: args.devices], (ENV_AXIS,))
 
     if args.obstacles:
         return obstacle_costs(mesh, args.out)
@@ -228,56 +275,91 @@ def main(argv=None):
         grid = [("orca", 20, 128), ("orca", 20, 1024), ("social_force", 20, 1024), ("orca", 20, 1024, "gst")]
         repeats = 2  # and only step_batch (the trainer's path): each ORCA program takes ~10 s to compile
     else:
-        grid = [(p, n, b) for p in ("orca", "social_force") for n in (5, 10, 20, 50)
-                for b in (1, 16, 256, 1024, 4096)] + [("orca", 20, b, "gst") for b in (256, 1024)]
+        grid = [
+            (p, n, b) for p in ("orca", "social_force") for n in (5, 10, 20, 50) for b in (1, 16, 256, 1024, 4096)
+        ] + [("orca", 20, b, "gst") for b in (256, 1024)]
         repeats = 3
     quick = args.quick or args.gst_only
     info = machine_info()
     print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")
     rows = []
     d = "-" if mesh is None else mesh.devices.size
-    print(f"{'policy':>13} {'humans':>6} {'predictor':>9} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} "
-          f"{'step_batch':>12} {f'on {d} devices':>14}")
+    print(
+        f"{'policy':>13} {'humans':>6} {'predictor':>9} {'batch':>6} {'compile s':>9} {'env-steps/s':>12} "
+        f"{'step_batch':>12} {f'on {d} devices':>14}"
+    )
     for policy, n, batch, *pred in grid:
         predictor = pred[0] if pred else "const_vel"
-        row = measure(policy, n, batch, scan_length(batch, quick), repeats, plain=not quick, mesh=mesh,
-                      predictor=predictor)
+        row = measure(
+            policy, n, batch, scan_length(batch, quick), repeats, plain=not quick, mesh=mesh, predictor=predictor
+        )
         rows.append(row)
-        cells = (f"{row[k]:>12,.0f}" if k in row else f"{'-':>12}" for k in ("env_steps_per_s",
-                                                                             "step_batch_env_steps_per_s"))
+        cells = (
+            f"{row[k]:>12,.0f}" if k in row else f"{'-':>12}" for k in ("env_steps_per_s", "step_batch_env_steps_per_s")
+        )
         sharded = row.get("step_batch_devices_env_steps_per_s")
-        print(f"{policy:>13} {n:>6} {predictor:>9} {batch:>6} {row['compile_s']:>9.1f} {' '.join(cells)} "
-              f"{'-' if sharded is None else f'{sharded:,.0f}':>14}", flush=True)
+        print(
+            f"{policy:>13} {n:>6} {predictor:>9} {batch:>6} {row['compile_s']:>9.1f} {' '.join(cells)} "
+            f"{'-' if sharded is None else f'{sharded:,.0f}':>14}",
+            flush=True,
+        )
 
     gst_flops = None
     if any(r["predictor"] == "gst" for r in rows):
         gst_flops = gst_flops_per_env_step(20)
         for r in (r for r in rows if r["predictor"] == "gst"):
-            best_rate = max(r.get(k, 0.0) for k in ("env_steps_per_s", "step_batch_env_steps_per_s",
-                                                     "step_batch_devices_env_steps_per_s"))
-            print(f"gst predictor: {gst_flops / 1e6:.1f} MFLOP per env step (XLA cost analysis, 20 humans); at "
-                  f"{best_rate:,.0f} env-steps/s (batch {r['batch']}) that is {gst_flops * best_rate / 1e9:.1f} GFLOP/s")
+            best_rate = max(
+                r.get(k, 0.0)
+                for k in ("env_steps_per_s", "step_batch_env_steps_per_s", "step_batch_devices_env_steps_per_s")
+            )
+            print(
+                f"gst predictor: {gst_flops / 1e6:.1f} MFLOP per env step (XLA cost analysis, 20 humans); at "
+                f"{best_rate:,.0f} env-steps/s (batch {r['batch']}) that is {gst_flops * best_rate / 1e9:.1f} GFLOP/s"
+            )
     if args.gst_only:
-        write_json(args.out, {"benchmark": "env_throughput", "gst_only": True, "machine": machine_info(),
-                              "gst_flops_per_env_step": gst_flops, "results": rows})
+        write_json(
+            args.out,
+            {
+                "benchmark": "env_throughput",
+                "gst_only": True,
+                "machine": machine_info(),
+                "gst_flops_per_env_step": gst_flops,
+                "results": rows,
+            },
+        )
         return
 
     from benchmarks.orca_throughput import rvo2_dostep_rate
 
     rvo2 = rvo2_dostep_rate(20, 2000 if args.quick else 20000)
     print(f"Python-RVO2 raw doStep, 20 agents, one core: {rvo2:,.0f} steps/s")
-    rate = lambda r: max(r.get("env_steps_per_s", 0.0), r.get("step_batch_env_steps_per_s", 0.0),  # noqa: E731
-                         r.get("step_batch_devices_env_steps_per_s", 0.0))
-    best = max((r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20 and r["predictor"] == "const_vel"),
-               key=rate)
-    print(f"best ORCA-20 env: {rate(best):,.0f} env-steps/s at batch {best['batch']} "
-          f"= {rate(best) / rvo2:.1f}x RVO2's raw doStep")
+    rate = lambda r: max(
+        r.get("env_steps_per_s", 0.0),
+        r.get("step_batch_env_steps_per_s", 0.0),  # noqa: E731
+        r.get("step_batch_devices_env_steps_per_s", 0.0),
+    )
+    best = max(
+        (r for r in rows if r["policy"] == "orca" and r["num_humans"] == 20 and r["predictor"] == "const_vel"), key=rate
+    )
+    print(
+        f"best ORCA-20 env: {rate(best):,.0f} env-steps/s at batch {best['batch']} "
+        f"= {rate(best) / rvo2:.1f}x RVO2's raw doStep"
+    )
     parts = {} if args.quick else {p: breakdown(p, 20, 1024, repeats) for p in ("orca", "social_force")}
     for p, ms in parts.items():
         print(f"where the time goes, {p}, 20 humans, batch 1024 (ms per batched call): {ms}")
-    write_json(args.out, {"benchmark": "env_throughput", "quick": args.quick, "machine": info,
-                          "gst_flops_per_env_step": gst_flops,
-                          "rvo2_dostep_20_per_s": rvo2, "results": rows, "breakdown_ms_batch1024": parts})
+    write_json(
+        args.out,
+        {
+            "benchmark": "env_throughput",
+            "quick": args.quick,
+            "machine": info,
+            "gst_flops_per_env_step": gst_flops,
+            "rvo2_dostep_20_per_s": rvo2,
+            "results": rows,
+            "breakdown_ms_batch1024": parts,
+        },
+    )
 
 
 if __name__ == "__main__":

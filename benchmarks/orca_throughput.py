@@ -51,8 +51,9 @@ def random_scenes(n_scenes: int, n_agents: int, seed: int = 0) -> dict:
     d = goal - pos
     pref = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1.0)
     f = lambda x: np.asarray(x, np.float32)  # noqa: E731
-    return dict(pos=f(pos), vel=f(vel), radius=f(rng.uniform(0.3, 0.5, shape) + 0.16), pref=f(pref),
-                max_speed=f(max_speed))
+    return dict(
+        pos=f(pos), vel=f(vel), radius=f(rng.uniform(0.3, 0.5, shape) + 0.16), pref=f(pref), max_speed=f(max_speed)
+    )
 
 
 def crossing_states(n_scenes: int, n_agents: int, seed: int = 0, n_rollouts: int = 64) -> dict:
@@ -100,14 +101,37 @@ def rvo2_dostep_rate(n_agents: int, n_steps: int, seed: int = 0) -> float:
     import rvo2  # imported here so that --no-rvo2 runs where the reference is not installed
 
     pool = random_scenes(16, n_agents, seed)
-    sim = rvo2.PyRVOSimulator(SETTINGS["dt"], SETTINGS["neighbor_dist"], max(n_agents - 1, 0),
-                              SETTINGS["time_horizon"], SETTINGS["time_horizon"], 0.3, 1.0)
+    sim = rvo2.PyRVOSimulator(
+        SETTINGS["dt"],
+        SETTINGS["neighbor_dist"],
+        max(n_agents - 1, 0),
+        SETTINGS["time_horizon"],
+        SETTINGS["time_horizon"],
+        0.3,
+        1.0,
+    )
     for i in range(n_agents):
-        sim.addAgent((0.0, 0.0), SETTINGS["neighbor_dist"], max(n_agents - 1, 0), SETTINGS["time_horizon"],
-                     SETTINGS["time_horizon"], float(pool["radius"][0, i]), float(pool["max_speed"][0, i]),
-                     (0.0, 0.0))
-    states = [[(tuple(map(float, pool["pos"][s, i])), tuple(map(float, pool["vel"][s, i])),
-                tuple(map(float, pool["pref"][s, i]))) for i in range(n_agents)] for s in range(16)]
+        sim.addAgent(
+            (0.0, 0.0),
+            SETTINGS["neighbor_dist"],
+            max(n_agents - 1, 0),
+            SETTINGS["time_horizon"],
+            SETTINGS["time_horizon"],
+            float(pool["radius"][0, i]),
+            float(pool["max_speed"][0, i]),
+            (0.0, 0.0),
+        )
+    states = [
+        [
+            (
+                tuple(map(float, pool["pos"][s, i])),
+                tuple(map(float, pool["vel"][s, i])),
+                tuple(map(float, pool["pref"][s, i])),
+            )
+            for i in range(n_agents)
+        ]
+        for s in range(16)
+    ]
     start = time.perf_counter()
     for step in range(n_steps):
         for i, (p, v, pr) in enumerate(states[step % 16]):
@@ -153,8 +177,7 @@ def obstacle_scenes(n_scenes: int, n_agents: int, seed: int = 0) -> dict:
     reach = np.linalg.norm(layouts["vertices"][:, :, 0] - centres, axis=-1)
     for s in range(n_scenes):
         for i in range(n_agents):
-            while np.any(np.linalg.norm(scenes["pos"][s, i] - centres[s], axis=-1)
-                         < reach[s] + scenes["radius"][s, i]):
+            while np.any(np.linalg.norm(scenes["pos"][s, i] - centres[s], axis=-1) < reach[s] + scenes["radius"][s, i]):
                 scenes["pos"][s, i] = rng.uniform(-side / 2, side / 2, 2)
     return dict(scenes, vertices=layouts["vertices"], num_vertices=layouts["num_vertices"])
 
@@ -175,12 +198,19 @@ def time_jax_obstacles(batch: int, n_agents: int, repeats: int, seed: int = 0, b
     sc = {k: jnp.asarray(v) for k, v in obstacle_scenes(batch, n_agents, seed).items()}
     agents = (sc["pos"], sc["vel"], sc["radius"], sc["pref"], sc["max_speed"])
     settings = dict(SETTINGS, max_neighbors=n_agents - 1, block=block)
-    with_obst = jax.jit(jax.vmap(lambda p, v, r, pr, m, ov, onv: orca.solve_with_info(
-        p, v, r, pr, m, obstacles=(ov, onv), time_horizon_obst=TIME_HORIZON_OBST, **settings)))
+    with_obst = jax.jit(
+        jax.vmap(
+            lambda p, v, r, pr, m, ov, onv: orca.solve_with_info(
+                p, v, r, pr, m, obstacles=(ov, onv), time_horizon_obst=TIME_HORIZON_OBST, **settings
+            )
+        )
+    )
     without = jax.jit(jax.vmap(lambda p, v, r, pr, m: orca.solve_with_info(p, v, r, pr, m, **settings)))
     out = dict(batch=batch, n_agents=n_agents, n_boxes=N_BOXES, block=block or orca.default_block(), repeats=repeats)
-    for name, fn, args in (("obstacles", with_obst, agents + (sc["vertices"], sc["num_vertices"])),
-                           ("no_obstacles", without, agents)):
+    for name, fn, args in (
+        ("obstacles", with_obst, agents + (sc["vertices"], sc["num_vertices"])),
+        ("no_obstacles", without, agents),
+    ):
         t0 = time.perf_counter()
         compiled = fn.lower(*args).compile()
         out[f"{name}_compile_s"] = time.perf_counter() - t0
@@ -213,18 +243,44 @@ def rvo2_obstacle_rate(n_agents: int, n_steps: int, seed: int = 0, n_layouts: in
     for with_obst in (True, False):
         sims = []
         for s in range(n_layouts):
-            sim = rvo2.PyRVOSimulator(SETTINGS["dt"], SETTINGS["neighbor_dist"], max(n_agents - 1, 0),
-                                      SETTINGS["time_horizon"], TIME_HORIZON_OBST, 0.3, 1.0)
+            sim = rvo2.PyRVOSimulator(
+                SETTINGS["dt"],
+                SETTINGS["neighbor_dist"],
+                max(n_agents - 1, 0),
+                SETTINGS["time_horizon"],
+                TIME_HORIZON_OBST,
+                0.3,
+                1.0,
+            )
             for i in range(n_agents):
-                sim.addAgent((0.0, 0.0), SETTINGS["neighbor_dist"], max(n_agents - 1, 0), SETTINGS["time_horizon"],
-                             TIME_HORIZON_OBST, float(pool["radius"][s, i]), float(pool["max_speed"][s, i]), (0.0, 0.0))
+                sim.addAgent(
+                    (0.0, 0.0),
+                    SETTINGS["neighbor_dist"],
+                    max(n_agents - 1, 0),
+                    SETTINGS["time_horizon"],
+                    TIME_HORIZON_OBST,
+                    float(pool["radius"][s, i]),
+                    float(pool["max_speed"][s, i]),
+                    (0.0, 0.0),
+                )
             if with_obst:
                 for m in range(pool["vertices"].shape[1]):
-                    sim.addObstacle([tuple(map(float, v)) for v in pool["vertices"][s, m, :pool["num_vertices"][s, m]]])
+                    sim.addObstacle(
+                        [tuple(map(float, v)) for v in pool["vertices"][s, m, : pool["num_vertices"][s, m]]]
+                    )
                 sim.processObstacles()
             sims.append(sim)
-        states = [[(tuple(map(float, pool["pos"][s, i])), tuple(map(float, pool["vel"][s, i])),
-                    tuple(map(float, pool["pref"][s, i]))) for i in range(n_agents)] for s in range(n_layouts)]
+        states = [
+            [
+                (
+                    tuple(map(float, pool["pos"][s, i])),
+                    tuple(map(float, pool["vel"][s, i])),
+                    tuple(map(float, pool["pref"][s, i])),
+                )
+                for i in range(n_agents)
+            ]
+            for s in range(n_layouts)
+        ]
         start = time.perf_counter()
         for step in range(n_steps):
             sim = sims[step % n_layouts]
@@ -234,23 +290,38 @@ def rvo2_obstacle_rate(n_agents: int, n_steps: int, seed: int = 0, n_layouts: in
                 sim.setAgentPrefVelocity(i, pr)
             sim.doStep()
         rates["obstacles" if with_obst else "no_obstacles"] = n_steps / (time.perf_counter() - start)
-    return dict(n_agents=n_agents, n_boxes=N_BOXES, dostep_per_s=rates["obstacles"],
-                agent_steps_per_s=rates["obstacles"] * n_agents, no_obstacles_dostep_per_s=rates["no_obstacles"],
-                obstacle_cost=rates["no_obstacles"] / rates["obstacles"])
+    return dict(
+        n_agents=n_agents,
+        n_boxes=N_BOXES,
+        dostep_per_s=rates["obstacles"],
+        agent_steps_per_s=rates["obstacles"] * n_agents,
+        no_obstacles_dostep_per_s=rates["no_obstacles"],
+        obstacle_cost=rates["no_obstacles"] / rates["obstacles"],
+    )
 
 
 def run_obstacles(args) -> dict:
     """The ``--obstacles`` mode: JAX with and without the boxes per batch size, then RVO2, and their ratios."""
     batches = args.batches or ([1, 16, 256] if args.quick else [1, 16, 256, 1024, 4096])
     repeats, rvo2_steps = (4, 300) if args.quick else (6, 2000)
-    blocks = {"default": [None], "cpu": [orca.CPU_BLOCK], "whole": [orca.WHOLE_BATCH],
-              "both": [orca.CPU_BLOCK, orca.WHOLE_BATCH]}[args.block]
-    results = dict(machine=machine_info(), settings=dict(SETTINGS, time_horizon_obst=TIME_HORIZON_OBST),
-                   obstacles=[], rvo2_obstacles=None)
+    blocks = {
+        "default": [None],
+        "cpu": [orca.CPU_BLOCK],
+        "whole": [orca.WHOLE_BATCH],
+        "both": [orca.CPU_BLOCK, orca.WHOLE_BATCH],
+    }[args.block]
+    results = dict(
+        machine=machine_info(),
+        settings=dict(SETTINGS, time_horizon_obst=TIME_HORIZON_OBST),
+        obstacles=[],
+        rvo2_obstacles=None,
+    )
     rvo2_rate = None if args.no_rvo2 else rvo2_obstacle_rate(20, rvo2_steps)
     results["rvo2_obstacles"] = rvo2_rate
-    print(f"{'batch':>6} {'block':>6} {'LP3 %':>6} {'compile s':>10} {'median ms':>10} {'agent-steps/s':>14} "
-          f"{'no-obst ms':>10} {'obst cost':>9} {'vs RVO2':>8}")
+    print(
+        f"{'batch':>6} {'block':>6} {'LP3 %':>6} {'compile s':>10} {'median ms':>10} {'agent-steps/s':>14} "
+        f"{'no-obst ms':>10} {'obst cost':>9} {'vs RVO2':>8}"
+    )
     for batch in batches:
         for block in blocks:
             r = time_jax_obstacles(batch, 20, repeats, block=block)
@@ -259,25 +330,36 @@ def run_obstacles(args) -> dict:
             results["obstacles"].append(r)
             name = "whole" if r["block"] == orca.WHOLE_BATCH else r["block"]
             vs = f"{r['vs_rvo2']:>7.1f}x" if "vs_rvo2" in r else f"{'-':>8}"
-            print(f"{batch:>6} {name:>6} {100 * r['obstacles_lp3_share']:>6.1f} {r['obstacles_compile_s']:>10.1f} "
-                  f"{1e3 * r['obstacles_median_s']:>10.2f} {r['obstacles_agent_steps_per_s']:>14.0f} "
-                  f"{1e3 * r['no_obstacles_median_s']:>10.2f} {r['obstacle_cost']:>8.2f}x {vs}", flush=True)
+            print(
+                f"{batch:>6} {name:>6} {100 * r['obstacles_lp3_share']:>6.1f} {r['obstacles_compile_s']:>10.1f} "
+                f"{1e3 * r['obstacles_median_s']:>10.2f} {r['obstacles_agent_steps_per_s']:>14.0f} "
+                f"{1e3 * r['no_obstacles_median_s']:>10.2f} {r['obstacle_cost']:>8.2f}x {vs}",
+                flush=True,
+            )
     if rvo2_rate is not None:
-        print(f"RVO2 doStep, 20 agents, {N_BOXES} boxes: {rvo2_rate['dostep_per_s']:.0f} steps/s "
-              f"({rvo2_rate['agent_steps_per_s']:.0f} agent-steps/s), one core; without the boxes "
-              f"{rvo2_rate['no_obstacles_dostep_per_s']:.0f} steps/s ({rvo2_rate['obstacle_cost']:.2f}x)")
+        print(
+            f"RVO2 doStep, 20 agents, {N_BOXES} boxes: {rvo2_rate['dostep_per_s']:.0f} steps/s "
+            f"({rvo2_rate['agent_steps_per_s']:.0f} agent-steps/s), one core; without the boxes "
+            f"{rvo2_rate['no_obstacles_dostep_per_s']:.0f} steps/s ({rvo2_rate['obstacle_cost']:.2f}x)"
+        )
     return results
 
 
-def time_jax(batch: int, n_agents: int, repeats: int, seed: int = 0, kind: str = "initial",
-             block: int | None = None) -> dict:
+def time_jax(
+    batch: int, n_agents: int, repeats: int, seed: int = 0, kind: str = "initial", block: int | None = None
+) -> dict:
     """Compile time and median run time of the batched solver on ``batch`` scenes of ``n_agents``
     (kind: "initial" random scenes or "crossing" mid-rollout states; block: the solver's LP block size,
     None: the backend's default)."""
     make = random_scenes if kind == "initial" else crossing_states
     scenes = {k: jnp.asarray(v) for k, v in make(batch, n_agents, seed).items()}
-    fn = jax.jit(jax.vmap(lambda p, v, r, pr, m: orca.solve_with_info(p, v, r, pr, m, max_neighbors=n_agents - 1,
-                                                                      block=block, **SETTINGS)))
+    fn = jax.jit(
+        jax.vmap(
+            lambda p, v, r, pr, m: orca.solve_with_info(
+                p, v, r, pr, m, max_neighbors=n_agents - 1, block=block, **SETTINGS
+            )
+        )
+    )
     args = (scenes["pos"], scenes["vel"], scenes["radius"], scenes["pref"], scenes["max_speed"])
     t0 = time.perf_counter()
     compiled = fn.lower(*args).compile()
@@ -289,38 +371,68 @@ def time_jax(batch: int, n_agents: int, repeats: int, seed: int = 0, kind: str =
         jax.block_until_ready(compiled(*args))
         runs.append(time.perf_counter() - t0)
     med = statistics.median(runs)
-    return dict(kind=kind, batch=batch, n_agents=n_agents, block=block or orca.default_block(), lp3_share=lp3_share, compile_s=compile_s, median_s=med,
-                min_s=min(runs),
-                scenes_per_s=batch / med, agent_steps_per_s=batch * n_agents / med, repeats=repeats)
+    return dict(
+        kind=kind,
+        batch=batch,
+        n_agents=n_agents,
+        block=block or orca.default_block(),
+        lp3_share=lp3_share,
+        compile_s=compile_s,
+        median_s=med,
+        min_s=min(runs),
+        scenes_per_s=batch / med,
+        agent_steps_per_s=batch * n_agents / med,
+        repeats=repeats,
+    )
 
 
 def machine_info() -> dict:
-    return dict(node=platform.node(), processor=platform.processor() or platform.machine(),
-                platform=platform.platform(), python=platform.python_version(), cpu_count=os.cpu_count(),
-                jax=jax.__version__, device=str(jax.devices()[0]), backend=jax.default_backend(),
-                xla_flags=os.environ.get("XLA_FLAGS", ""), load_avg=list(os.getloadavg()))
+    return dict(
+        node=platform.node(),
+        processor=platform.processor() or platform.machine(),
+        platform=platform.platform(),
+        python=platform.python_version(),
+        cpu_count=os.cpu_count(),
+        jax=jax.__version__,
+        device=str(jax.devices()[0]),
+        backend=jax.default_backend(),
+        xla_flags=os.environ.get("XLA_FLAGS", ""),
+        load_avg=list(os.getloadavg()),
+    )
 
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats (< 1 minute)")
     parser.add_argument("--out", help="write the results as JSON to this file")
-    parser.add_argument("--block", choices=("default", "cpu", "whole", "both"), default="default",
-                        help="the solver's LP blocks: the backend's default, 128 problems (a CPU's), one block "
-                             "of the whole batch (a GPU's), or both, timed one after the other per case")
+    parser.add_argument(
+        "--block",
+        choices=("default", "cpu", "whole", "both"),
+        default="default",
+        help="the solver's LP blocks: the backend's default, 128 problems (a CPU's), one block "
+        "of the whole batch (a GPU's), or both, timed one after the other per case",
+    )
     parser.add_argument("--batches", type=int, nargs="*", help="scene batch sizes of the 20-agent cases")
-    parser.add_argument("--no-rvo2", action="store_true",
-                        help="time the JAX solver only (for a machine without Python-RVO2, e.g. a GPU box)")
-    parser.add_argument("--obstacles", action="store_true",
-                        help="time scenes with static obstacles (20 agents, 8 boxes) instead: with and without "
-                             "the boxes, and against RVO2 with them (--batches sets the batch sizes)")
+    parser.add_argument(
+        "--no-rvo2",
+        action="store_true",
+        help="time the JAX solver only (for a machine without Python-RVO2, e.g. a GPU box)",
+    )
+    parser.add_argument(
+        "--obstacles",
+        action="store_true",
+        help="time scenes with static obstacles (20 agents, 8 boxes) instead: with and without "
+        "the boxes, and against RVO2 with them (--batches sets the batch sizes)",
+    )
     args = parser.parse_args(argv)
     if not args.no_rvo2:
         try:
             import rvo2  # noqa: F401
         except ImportError:
-            parser.error("Python-RVO2 (module rvo2, the package pyrvo2-danieldugas) is not installed; install it "
-                         "or pass --no-rvo2 to time the JAX solver alone")
+            parser.error(
+                "Python-RVO2 (module rvo2, the package pyrvo2-danieldugas) is not installed; install it "
+                "or pass --no-rvo2 to time the JAX solver alone"
+            )
     configure_cpu()  # 512-bit vectors on AVX-512, as the command-line tools use
 
     if args.obstacles:
@@ -331,30 +443,40 @@ def main(argv=None) -> dict:
         return results
 
     if args.quick:
-        cases = [(b, 20, k) for k in ("initial", "crossing") for b in (1, 16, 256)] + [(64, n, "initial")
-                                                                                      for n in (5, 10)]
+        cases = [(b, 20, k) for k in ("initial", "crossing") for b in (1, 16, 256)] + [
+            (64, n, "initial") for n in (5, 10)
+        ]
         repeats, rvo2_steps = 3, 300
     else:
-        cases = ([(b, 20, k) for k in ("initial", "crossing") for b in (1, 16, 256, 1024, 4096)]
-                 + [(b, n, "initial") for n in (5, 10, 50) for b in (256, 1024)])
+        cases = [(b, 20, k) for k in ("initial", "crossing") for b in (1, 16, 256, 1024, 4096)] + [
+            (b, n, "initial") for n in (5, 10, 50) for b in (256, 1024)
+        ]
         repeats, rvo2_steps = 5, 2000
 
     if args.batches:
         cases = [(b, 20, k) for k in ("initial", "crossing") for b in args.batches]
-    blocks = {"default": [None], "cpu": [orca.CPU_BLOCK], "whole": [orca.WHOLE_BATCH],
-              "both": [orca.CPU_BLOCK, orca.WHOLE_BATCH]}[args.block]
+    blocks = {
+        "default": [None],
+        "cpu": [orca.CPU_BLOCK],
+        "whole": [orca.WHOLE_BATCH],
+        "both": [orca.CPU_BLOCK, orca.WHOLE_BATCH],
+    }[args.block]
 
     results = dict(machine=machine_info(), settings=SETTINGS, jax=[], rvo2=[])
-    print(f"{'scenes':>9} {'agents':>6} {'batch':>6} {'block':>6} {'LP3 %':>6} {'compile s':>10} {'median ms':>10} "
-          f"{'scenes/s':>12} {'agent-steps/s':>14}")
+    print(
+        f"{'scenes':>9} {'agents':>6} {'batch':>6} {'block':>6} {'LP3 %':>6} {'compile s':>10} {'median ms':>10} "
+        f"{'scenes/s':>12} {'agent-steps/s':>14}"
+    )
     for batch, n, kind in cases:
         for block in blocks:
             r = time_jax(batch, n, repeats, kind=kind, block=block)
             results["jax"].append(r)
             name = "whole" if r["block"] == orca.WHOLE_BATCH else r["block"]
-            print(f"{kind:>9} {n:>6} {batch:>6} {name:>6} {100 * r['lp3_share']:>6.1f} {r['compile_s']:>10.1f} "
-                  f"{1e3 * r['median_s']:>10.2f} {r['scenes_per_s']:>12.0f} {r['agent_steps_per_s']:>14.0f}",
-                  flush=True)
+            print(
+                f"{kind:>9} {n:>6} {batch:>6} {name:>6} {100 * r['lp3_share']:>6.1f} {r['compile_s']:>10.1f} "
+                f"{1e3 * r['median_s']:>10.2f} {r['scenes_per_s']:>12.0f} {r['agent_steps_per_s']:>14.0f}",
+                flush=True,
+            )
     for n in sorted({n for _, n, _ in cases}) if not args.no_rvo2 else []:
         rate = rvo2_dostep_rate(n, rvo2_steps)
         results["rvo2"].append(dict(n_agents=n, dostep_per_s=rate, agent_steps_per_s=rate * n))

@@ -77,13 +77,26 @@ def measure_train(code: pathlib.Path, config: str | None, updates: int, periods:
     """Time to first update and compilations of a tgrf-train run stopped after `updates` updates."""
     log_every, checkpoint_every, eval_every = periods
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "tgrf_jax.cli.train", *([config] if config else []),
-               "--set", f"run.log_every={log_every}", "--set", f"run.checkpoint_every={checkpoint_every}",
-               "--set", f"run.eval_every={eval_every}", "--set", "run.curve_episodes=20",
-               "--out-dir", str(pathlib.Path(tmp) / "run")]
+        cmd = [
+            sys.executable,
+            "-m",
+            "tgrf_jax.cli.train",
+            *([config] if config else []),
+            "--set",
+            f"run.log_every={log_every}",
+            "--set",
+            f"run.checkpoint_every={checkpoint_every}",
+            "--set",
+            f"run.eval_every={eval_every}",
+            "--set",
+            "run.curve_episodes=20",
+            "--out-dir",
+            str(pathlib.Path(tmp) / "run"),
+        ]
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, cwd=tmp, env=_env(code), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                text=True)
+        proc = subprocess.Popen(
+            cmd, cwd=tmp, env=_env(code), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
         first_update_s, compiles, lines, last_update, sps = None, [], [], 0, []
         for line in proc.stdout:
             lines.append(line.rstrip())
@@ -101,29 +114,44 @@ def measure_train(code: pathlib.Path, config: str | None, updates: int, periods:
         raise RuntimeError(f"{code}: tgrf-train printed no progress line:\n" + "\n".join(lines[-30:]))
     # the first chunk's rate includes warm-up effects; the median of the others is the training rate
     rates = sorted(sps[1:]) or sps
-    return {"time_to_first_update_s": first_update_s, "programs_compiled": len(compiles),
-            "compile_s": compiles, "updates": last_update, "train_sps_median": rates[len(rates) // 2],
-            "wall_s": time.perf_counter() - t0}
+    return {
+        "time_to_first_update_s": first_update_s,
+        "programs_compiled": len(compiles),
+        "compile_s": compiles,
+        "updates": last_update,
+        "train_sps_median": rates[len(rates) // 2],
+        "wall_s": time.perf_counter() - t0,
+    }
 
 
 def measure_eval(code: pathlib.Path, policy: str, episodes: int) -> dict:
-    out = subprocess.run([sys.executable, "-c", EVAL_PROBE, policy, str(episodes)], cwd=tempfile.gettempdir(),
-                         env=_env(code), capture_output=True, text=True, timeout=3600)
+    out = subprocess.run(
+        [sys.executable, "-c", EVAL_PROBE, policy, str(episodes)],
+        cwd=tempfile.gettempdir(),
+        env=_env(code),
+        capture_output=True,
+        text=True,
+        timeout=3600,
+    )
     for line in out.stdout.splitlines():
         if line.startswith("RESULT "):
-            return json.loads(line[len("RESULT "):])
+            return json.loads(line[len("RESULT ") :])
     raise RuntimeError(f"{code}: evaluation probe failed:\n{out.stdout[-2000:]}\n{out.stderr[-3000:]}")
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--code", action="append", type=pathlib.Path, help="a checkout to measure (repeatable; "
-                   "default: this one)")
+    p.add_argument(
+        "--code", action="append", type=pathlib.Path, help="a checkout to measure (repeatable; default: this one)"
+    )
     p.add_argument("--config", help="tgrf-train config file (default: the embedded default)")
     p.add_argument("--updates", type=int, default=12, help="updates before the run is stopped (default 12)")
     p.add_argument("--periods", default="5,6,4", help="log_every,checkpoint_every,eval_every (default 5,6,4)")
-    p.add_argument("--pretrained", action="append",
-                   help="shipped policies to evaluate (default: table1-const_vel-tgrf and table1-truth-tgrf)")
+    p.add_argument(
+        "--pretrained",
+        action="append",
+        help="shipped policies to evaluate (default: table1-const_vel-tgrf and table1-truth-tgrf)",
+    )
     p.add_argument("--episodes", type=int, default=500)
     p.add_argument("--skip", choices=("train", "eval"), action="append", default=[])
     p.add_argument("--out", help="JSON file for the results")
@@ -140,27 +168,38 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(ROOT))
     from benchmarks.common import machine_info, write_json
 
-    results = {"machine": machine_info(), "date": time.strftime("%Y-%m-%d"), "updates": args.updates,
-               "periods": dict(zip(("log_every", "checkpoint_every", "eval_every"), periods)),
-               "episodes": args.episodes, "codes": {}}
+    results = {
+        "machine": machine_info(),
+        "date": time.strftime("%Y-%m-%d"),
+        "updates": args.updates,
+        "periods": dict(zip(("log_every", "checkpoint_every", "eval_every"), periods)),
+        "episodes": args.episodes,
+        "codes": {},
+    }
     for code in codes:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=code, capture_output=True,
-                                text=True).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=code, capture_output=True, text=True
+        ).stdout.strip()
         entry = results["codes"][str(code)] = {"commit": commit}
         if "train" not in args.skip:
             entry["train"] = t = measure_train(code, args.config, args.updates, periods)
-            print(f"{code} ({commit}) train: first update after {t['time_to_first_update_s']:.1f} s; "
-                  f"{t['programs_compiled']} training program(s) compiled "
-                  f"({', '.join(f'{s:.1f}' for s in t['compile_s'])} s); "
-                  f"{t['train_sps_median']:,.0f} env-steps/s (median over chunks)", flush=True)
+            print(
+                f"{code} ({commit}) train: first update after {t['time_to_first_update_s']:.1f} s; "
+                f"{t['programs_compiled']} training program(s) compiled "
+                f"({', '.join(f'{s:.1f}' for s in t['compile_s'])} s); "
+                f"{t['train_sps_median']:,.0f} env-steps/s (median over chunks)",
+                flush=True,
+            )
         if "eval" not in args.skip:
             entry["eval"] = []
             for policy in policies:
                 e = measure_eval(code, policy, args.episodes)
                 entry["eval"].append(e)
-                print(f"{code} ({commit}) eval {policy}: {args.episodes} episodes in {e['second_s']:.2f} s "
-                      f"(first call {e['first_s']:.1f} s with compilation); success {e['second_success_rate']:.3f}",
-                      flush=True)
+                print(
+                    f"{code} ({commit}) eval {policy}: {args.episodes} episodes in {e['second_s']:.2f} s "
+                    f"(first call {e['first_s']:.1f} s with compilation); success {e['second_success_rate']:.3f}",
+                    flush=True,
+                )
     write_json(args.out, results)
     return 0
 

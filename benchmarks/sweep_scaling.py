@@ -57,8 +57,11 @@ def _fresh():
 
 
 def _compile_stats() -> dict:
-    return {"compiles": len(_compiles), "program_compiles": sum(d >= 0.5 for d in _compiles),
-            "compile_s": round(sum(_compiles), 2)}
+    return {
+        "compiles": len(_compiles),
+        "program_compiles": sum(d >= 0.5 for d in _compiles),
+        "compile_s": round(sum(_compiles), 2),
+    }
 
 
 def run_sweep_once(base: dict, g: int, workdir: pathlib.Path) -> dict:
@@ -70,9 +73,17 @@ def run_sweep_once(base: dict, g: int, workdir: pathlib.Path) -> dict:
     batch = spec.base_config.ppo.batch_size
     steps = g * res.updates * batch
     program = next(iter(sweep_program._PROGRAMS.values()))
-    return {"mode": "sweep", "G": g, "devices": res.num_devices, "wall_s": round(wall, 2),
-            "train_s": round(res.train_seconds, 3), "env_steps": steps, "sps": round(steps / res.train_seconds, 1),
-            "chunk_compiles": len(program.compiled), **_compile_stats()}
+    return {
+        "mode": "sweep",
+        "G": g,
+        "devices": res.num_devices,
+        "wall_s": round(wall, 2),
+        "train_s": round(res.train_seconds, 3),
+        "env_steps": steps,
+        "sps": round(steps / res.train_seconds, 1),
+        "chunk_compiles": len(program.compiled),
+        **_compile_stats(),
+    }
 
 
 def run_sequential(base: dict, g: int, workdir: pathlib.Path) -> dict:
@@ -86,16 +97,27 @@ def run_sequential(base: dict, g: int, workdir: pathlib.Path) -> dict:
         steps += res.updates * cfg.ppo.batch_size
         chunk_compiles += res.compiled_chunks
     wall = time.perf_counter() - t0
-    return {"mode": "sequential", "G": g, "devices": 1, "wall_s": round(wall, 2), "train_s": round(train_s, 3),
-            "env_steps": steps, "sps": round(steps / train_s, 1), "chunk_compiles": chunk_compiles,
-            **_compile_stats()}
+    return {
+        "mode": "sequential",
+        "G": g,
+        "devices": 1,
+        "wall_s": round(wall, 2),
+        "train_s": round(train_s, 3),
+        "env_steps": steps,
+        "sps": round(steps / train_s, 1),
+        "chunk_compiles": chunk_compiles,
+        **_compile_stats(),
+    }
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true",
-                        help="G = 1 and 16 only, sequential runs measured for G = 1 only (G = 16 estimated as 16 x "
-                        "that); about a minute on 2 cores")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="G = 1 and 16 only, sequential runs measured for G = 1 only (G = 16 estimated as 16 x "
+        "that); about a minute on 2 cores",
+    )
     parser.add_argument("--out", help="write results as JSON")
     parser.add_argument("--config", default=str(ROOT / "configs" / "tiny.yaml"), help="run config (default: tiny)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
@@ -107,9 +129,12 @@ def main(argv=None):
     data = apply_overrides(load_yaml(args.config), ["run.eval_episodes=0", *args.overrides])
     base = TrainConfig.from_dict(data).to_dict()
     cfg = TrainConfig.from_dict(base)
-    print(f"config {args.config} {' '.join(args.overrides)}: {cfg.env.num_humans} {cfg.env.human_policy} humans, "
-          f"{cfg.network.name}/{cfg.network.size}, {cfg.ppo.num_envs} envs x {cfg.ppo.num_steps} steps, "
-          f"{cfg.ppo.num_updates} updates per run; {len(jax.devices())} {jax.default_backend()} device(s)", flush=True)
+    print(
+        f"config {args.config} {' '.join(args.overrides)}: {cfg.env.num_humans} {cfg.env.human_policy} humans, "
+        f"{cfg.network.name}/{cfg.network.size}, {cfg.ppo.num_envs} envs x {cfg.ppo.num_steps} steps, "
+        f"{cfg.ppo.num_updates} updates per run; {len(jax.devices())} {jax.default_backend()} device(s)",
+        flush=True,
+    )
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = pathlib.Path(tmp)
@@ -118,8 +143,10 @@ def main(argv=None):
             s = run_sweep_once(base, g, tmp)
             results.append(s)
             if args.quick and g > 1 and seq_one is not None:
-                q = {k: seq_one[k] * g for k in ("wall_s", "train_s", "env_steps", "chunk_compiles",
-                                                 "program_compiles", "compile_s")}
+                q = {
+                    k: seq_one[k] * g
+                    for k in ("wall_s", "train_s", "env_steps", "chunk_compiles", "program_compiles", "compile_s")
+                }
                 # the small eager compilations of the first run are cached for the later ones
                 q["compiles"] = seq_one["compiles"] + (g - 1) * seq_one["program_compiles"]
                 q.update(mode="sequential", G=g, devices=1, sps=seq_one["sps"], estimated=True)
@@ -129,21 +156,37 @@ def main(argv=None):
                 if g == 1:
                     seq_one = q
             results.append(q)
-            print(f"G={g:>3}: sweep {s['wall_s']:7.1f} s wall ({s['train_s']:6.2f} s training, {s['sps']:>10,.0f} "
-                  f"steps/s, {s['chunk_compiles']} chunk compile(s), {s['program_compiles']} program compiles) | "
-                  f"sequential {q['wall_s']:7.1f} s wall ({q['train_s']:6.2f} s training, {q['sps']:>10,.0f} "
-                  f"steps/s, {q['chunk_compiles']} chunk compile(s), {q['program_compiles']} program compiles)"
-                  f"{' [estimated: G x the G=1 run]' if q.get('estimated') else ''}", flush=True)
+            print(
+                f"G={g:>3}: sweep {s['wall_s']:7.1f} s wall ({s['train_s']:6.2f} s training, {s['sps']:>10,.0f} "
+                f"steps/s, {s['chunk_compiles']} chunk compile(s), {s['program_compiles']} program compiles) | "
+                f"sequential {q['wall_s']:7.1f} s wall ({q['train_s']:6.2f} s training, {q['sps']:>10,.0f} "
+                f"steps/s, {q['chunk_compiles']} chunk compile(s), {q['program_compiles']} program compiles)"
+                f"{' [estimated: G x the G=1 run]' if q.get('estimated') else ''}",
+                flush=True,
+            )
     print()
-    print("| G | mode | wall s | train s | env steps | steps/s | chunk compiles | program compiles (>=0.5 s) | "
-          "all compiles | compile s |")
+    print(
+        "| G | mode | wall s | train s | env steps | steps/s | chunk compiles | program compiles (>=0.5 s) | "
+        "all compiles | compile s |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         mode = r["mode"] + (" (estimated)" if r.get("estimated") else "")
-        print(f"| {r['G']} | {mode} | {r['wall_s']:.1f} | {r['train_s']:.2f} | {r['env_steps']:,} | {r['sps']:,.0f} | "
-              f"{r['chunk_compiles']} | {r['program_compiles']} | {r['compiles']} | {r['compile_s']:.1f} |")
-    write_json(args.out, {"machine": machine_info(), "benchmark": "sweep_scaling", "quick": args.quick,
-                          "config": args.config, "overrides": args.overrides, "results": results})
+        print(
+            f"| {r['G']} | {mode} | {r['wall_s']:.1f} | {r['train_s']:.2f} | {r['env_steps']:,} | {r['sps']:,.0f} | "
+            f"{r['chunk_compiles']} | {r['program_compiles']} | {r['compiles']} | {r['compile_s']:.1f} |"
+        )
+    write_json(
+        args.out,
+        {
+            "machine": machine_info(),
+            "benchmark": "sweep_scaling",
+            "quick": args.quick,
+            "config": args.config,
+            "overrides": args.overrides,
+            "results": results,
+        },
+    )
 
 
 if __name__ == "__main__":

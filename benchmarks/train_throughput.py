@@ -49,10 +49,20 @@ def learner_flops_per_update(tr, state) -> float:
     obs = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((t, envs) + x.shape[1:], x.dtype), obs)
     f32 = lambda: jax.ShapeDtypeStruct((t, envs), jnp.float32)  # noqa: E731
     flag = lambda: jax.ShapeDtypeStruct((t, envs), bool)  # noqa: E731
-    batch = Transition(obs=obs, resets=flag(), action=jax.ShapeDtypeStruct((t, envs, 2), jnp.float32),
-                       log_prob=f32(), value=f32(), reward=f32(), done=flag(), truncated=flag(), final_value=f32())
-    carry = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((envs,) + x.shape[1:], x.dtype),
-                                   tr.net.initialize_carry(1))
+    batch = Transition(
+        obs=obs,
+        resets=flag(),
+        action=jax.ShapeDtypeStruct((t, envs, 2), jnp.float32),
+        log_prob=f32(),
+        value=f32(),
+        reward=f32(),
+        done=flag(),
+        truncated=flag(),
+        final_value=f32(),
+    )
+    carry = jax.tree_util.tree_map(
+        lambda x: jax.ShapeDtypeStruct((envs,) + x.shape[1:], x.dtype), tr.net.initialize_carry(1)
+    )
     stats = state.return_stats if p.norm_value else None
     grad = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
     fn = jax.jit(lambda params, c0, b, a, r: grad(tr.net, params, c0, b, a, r, state.hparams, p.clip_value, stats))
@@ -76,17 +86,37 @@ def matmul_reference_gflops(rows: int = 3840, repeats: int = 20) -> float:
     return 2.0 * rows * s.hh_attn * cols / run_s / 1e9
 
 
-def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: int, updates: int,
-            breakdown: bool, repeats: int, epochs: int, minibatches: int, microbatch_envs: int,
-            num_shards: int, predictor: str = "const_vel", env_overrides: dict | None = None) -> dict:
-    cfg = TrainConfig.from_dict({
-        "env": {"num_humans": 20, "human_policy": human_policy, "predictor": predictor, **(env_overrides or {})},
-        "network": {"name": name, "size": size},
-        "ppo": {"num_envs": num_envs, "num_steps": num_steps, "num_shards": num_shards,
+def measure(
+    name: str,
+    size: str,
+    num_envs: int,
+    human_policy: str,
+    num_steps: int,
+    updates: int,
+    breakdown: bool,
+    repeats: int,
+    epochs: int,
+    minibatches: int,
+    microbatch_envs: int,
+    num_shards: int,
+    predictor: str = "const_vel",
+    env_overrides: dict | None = None,
+) -> dict:
+    cfg = TrainConfig.from_dict(
+        {
+            "env": {"num_humans": 20, "human_policy": human_policy, "predictor": predictor, **(env_overrides or {})},
+            "network": {"name": name, "size": size},
+            "ppo": {
+                "num_envs": num_envs,
+                "num_steps": num_steps,
+                "num_shards": num_shards,
                 "num_minibatches": minibatches if num_envs % (num_shards * minibatches) == 0 else 1,
-                "update_epochs": epochs, "microbatch_envs": microbatch_envs,
-                "total_steps": max(num_envs * num_steps * updates, 3_000_000)},
-    })
+                "update_epochs": epochs,
+                "microbatch_envs": microbatch_envs,
+                "total_steps": max(num_envs * num_steps * updates, 3_000_000),
+            },
+        }
+    )
     t = make_train(cfg)
     tr = t.trainer
     state = t.init(jax.random.PRNGKey(0), t.default_hparams)
@@ -105,13 +135,23 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
         runs.append(time.perf_counter() - start)
     run_s = sorted(runs)[len(runs) // 2]
     out = {
-        "network": name, "size": size, "num_envs": num_envs, "num_steps": num_steps, "human_policy": human_policy,
-        "predictor": predictor, "env_overrides": env_overrides or {},
-        "num_shards": num_shards, "shard_placement": shards.describe(num_shards, tr.mesh),
-        "update_epochs": cfg.ppo.update_epochs, "num_minibatches": cfg.ppo.num_minibatches,
+        "network": name,
+        "size": size,
+        "num_envs": num_envs,
+        "num_steps": num_steps,
+        "human_policy": human_policy,
+        "predictor": predictor,
+        "env_overrides": env_overrides or {},
+        "num_shards": num_shards,
+        "shard_placement": shards.describe(num_shards, tr.mesh),
+        "update_epochs": cfg.ppo.update_epochs,
+        "num_minibatches": cfg.ppo.num_minibatches,
         "microbatches": cfg.ppo.num_microbatches,
-        "params": tr.net.num_params(state.params), "updates_per_call": updates, "compile_s": round(compile_s, 2),
-        "update_s": round(run_s / updates, 5), "train_sps": round(steps / run_s, 1),
+        "params": tr.net.num_params(state.params),
+        "updates_per_call": updates,
+        "compile_s": round(compile_s, 2),
+        "update_s": round(run_s / updates, 5),
+        "train_sps": round(steps / run_s, 1),
     }
     if breakdown:
         # the same pieces as in training: per shard, on the shards' devices
@@ -127,12 +167,15 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
                 def body(carry, k):
                     obs, env_state = carry
                     action = jnp.ones((cfg.ppo.shard_envs, 2)) * 0.5
-                    obs, env_state, reward, *_ = tr.env.step_batch(k, env_state, action, s.hparams.env,
-                                                                   cfg.ppo.reset_slots)
+                    obs, env_state, reward, *_ = tr.env.step_batch(
+                        k, env_state, action, s.hparams.env, cfg.ppo.reset_slots
+                    )
                     return (obs, env_state), reward.sum()
+
                 keys = jax.random.split(tr.shard_key(key), num_steps)
                 (obs, env_state), _ = jax.lax.scan(body, (s.obs, s.env_state), keys)
                 return s.replace(obs=obs, env_state=env_state), {}
+
             return tr.across_shards(shard)(state)
 
         _, env_s = time_call(env_only, state, jax.random.PRNGKey(2), repeats=repeats)
@@ -141,7 +184,9 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
         flops = learner_flops_per_update(tr, state)
         ref = matmul_reference_gflops()
         out.update(
-            env_s=round(env_s, 5), rollout_s=round(roll_s, 5), policy_in_rollout_s=round(roll_s - env_s, 5),
+            env_s=round(env_s, 5),
+            rollout_s=round(roll_s, 5),
+            policy_in_rollout_s=round(roll_s - env_s, 5),
             learn_s=round(learn_s, 5),
             env_only_sps=round(num_envs * num_steps / env_s, 1),
             learn_gflop_per_update=round(flops / 1e9, 3),
@@ -155,32 +200,65 @@ def measure(name: str, size: str, num_envs: int, human_policy: str, num_steps: i
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true",
-                        help="HH Attn small at the default config's env count, no breakdown (< 1 min)")
+    parser.add_argument(
+        "--quick", action="store_true", help="HH Attn small at the default config's env count, no breakdown (< 1 min)"
+    )
     parser.add_argument("--out", help="write results as JSON")
     parser.add_argument("--human-policy", default="orca", choices=["orca", "social_force"])
-    parser.add_argument("--predictor", default="const_vel", choices=["none", "const_vel", "truth", "gst"],
-                        help="env.predictor (gst: the shipped learned model runs in every env step)")
-    parser.add_argument("--envs", type=int, nargs="*",
-                        help="env counts (default: 64 256 1024; quick: the default config's)")
+    parser.add_argument(
+        "--predictor",
+        default="const_vel",
+        choices=["none", "const_vel", "truth", "gst"],
+        help="env.predictor (gst: the shipped learned model runs in every env step)",
+    )
+    parser.add_argument(
+        "--envs", type=int, nargs="*", help="env counts (default: 64 256 1024; quick: the default config's)"
+    )
     parser.add_argument("--nets", nargs="*", help="name/size pairs, e.g. hh_attn/small mlp/small")
     default_ppo = TrainConfig().ppo
-    parser.add_argument("--shards", type=int, default=default_ppo.num_shards,
-                        help="ppo.num_shards, one CPU device each (default: the embedded default config's)")
-    parser.add_argument("--epochs", type=int, default=default_ppo.update_epochs,
-                        help="PPO epochs per update (default: the embedded default config's)")
-    parser.add_argument("--minibatches", type=int, default=default_ppo.num_minibatches,
-                        help="minibatches per epoch (default: the embedded default config's)")
-    parser.add_argument("--num-steps", type=int, default=default_ppo.num_steps,
-                        help="rollout length per update (default: the embedded default config's)")
-    parser.add_argument("--microbatch-envs", type=int, default=default_ppo.microbatch_envs,
-                        help="envs per gradient slice (default: the embedded default config's; 0: whole minibatch)")
-    parser.add_argument("--env-set", action="append", default=[], metavar="FIELD=VALUE",
-                        help="an env setting for every point (repeatable), e.g. --env-set scenario=mix "
-                        "--env-set num_humans=30 --env-set active_humans_min=5")
-    parser.add_argument("--against-plain", action="store_true",
-                        help="with --env-set: also measure the plain paper scenario (20 humans) in the same run "
-                        "and print the ratio")
+    parser.add_argument(
+        "--shards",
+        type=int,
+        default=default_ppo.num_shards,
+        help="ppo.num_shards, one CPU device each (default: the embedded default config's)",
+    )
+    parser.add_argument(
+        "--epochs",
+        type=int,
+        default=default_ppo.update_epochs,
+        help="PPO epochs per update (default: the embedded default config's)",
+    )
+    parser.add_argument(
+        "--minibatches",
+        type=int,
+        default=default_ppo.num_minibatches,
+        help="minibatches per epoch (default: the embedded default config's)",
+    )
+    parser.add_argument(
+        "--num-steps",
+        type=int,
+        default=default_ppo.num_steps,
+        help="rollout length per update (default: the embedded default config's)",
+    )
+    parser.add_argument(
+        "--microbatch-envs",
+        type=int,
+        default=default_ppo.microbatch_envs,
+        help="envs per gradient slice (default: the embedded default config's; 0: whole minibatch)",
+    )
+    parser.add_argument(
+        "--env-set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="an env setting for every point (repeatable), e.g. --env-set scenario=mix "
+        "--env-set num_humans=30 --env-set active_humans_min=5",
+    )
+    parser.add_argument(
+        "--against-plain",
+        action="store_true",
+        help="with --env-set: also measure the plain paper scenario (20 humans) in the same run and print the ratio",
+    )
     args = parser.parse_args(argv)
     overrides = {}
     for item in args.env_set:
@@ -200,9 +278,11 @@ def main(argv=None):
         envs = args.envs or [64, 256, 1024]
         updates, breakdown, repeats = 2, True, 3
     results = []
-    print(f"{'net':>14} {'envs':>5} {'train sps':>10} {'compile s':>9} {'env s':>7} {'rollout s':>9} "
-          f"{'learn s':>8} (per update) {'learn GFLOP/s':>13} {'matmul ref':>10} {'learn bound sps':>15}",
-          flush=True)
+    print(
+        f"{'net':>14} {'envs':>5} {'train sps':>10} {'compile s':>9} {'env s':>7} {'rollout s':>9} "
+        f"{'learn s':>8} (per update) {'learn GFLOP/s':>13} {'matmul ref':>10} {'learn bound sps':>15}",
+        flush=True,
+    )
     for spec in nets:
         name, size = spec.split("/")
         for n in envs:
@@ -210,20 +290,40 @@ def main(argv=None):
                 continue  # minutes per point on 2 cores
             variants = ([{}] if args.against_plain else []) + [overrides]
             for env_overrides in variants:
-                r = measure(name, size, n, args.human_policy, args.num_steps, updates, breakdown, repeats,
-                            args.epochs, args.minibatches, args.microbatch_envs, args.shards, args.predictor,
-                            env_overrides)
+                r = measure(
+                    name,
+                    size,
+                    n,
+                    args.human_policy,
+                    args.num_steps,
+                    updates,
+                    breakdown,
+                    repeats,
+                    args.epochs,
+                    args.minibatches,
+                    args.microbatch_envs,
+                    args.shards,
+                    args.predictor,
+                    env_overrides,
+                )
                 results.append(r)
                 label = ",".join(f"{k}={v}" for k, v in env_overrides.items()) or "plain"
-                print(f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} "
-                      f"{r.get('env_s', 0):>7.3f} {r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f} "
-                      f"{'':>12} {r.get('learn_gflops') or 0:>13.1f} {r.get('matmul_reference_gflops', 0):>10.1f} "
-                      f"{r.get('learn_bound_sps', 0):>15,.0f}  [{label}]", flush=True)
+                print(
+                    f"{spec:>14} {n:>5} {r['train_sps']:>10,.0f} {r['compile_s']:>9.1f} "
+                    f"{r.get('env_s', 0):>7.3f} {r.get('rollout_s', 0):>9.3f} {r.get('learn_s', 0):>8.3f} "
+                    f"{'':>12} {r.get('learn_gflops') or 0:>13.1f} {r.get('matmul_reference_gflops', 0):>10.1f} "
+                    f"{r.get('learn_bound_sps', 0):>15,.0f}  [{label}]",
+                    flush=True,
+                )
             if args.against_plain:
-                print(f"{'':>14} {n:>5} ratio {results[-1]['train_sps'] / results[-2]['train_sps']:.2f}x of the "
-                      f"plain scenario's rate", flush=True)
-    write_json(args.out, {"machine": machine_info(), "benchmark": "train_throughput", "quick": args.quick,
-                          "results": results})
+                print(
+                    f"{'':>14} {n:>5} ratio {results[-1]['train_sps'] / results[-2]['train_sps']:.2f}x of the "
+                    f"plain scenario's rate",
+                    flush=True,
+                )
+    write_json(
+        args.out, {"machine": machine_info(), "benchmark": "train_throughput", "quick": args.quick, "results": results}
+    )
 
 
 if __name__ == "__main__":

@@ -56,11 +56,29 @@ def pytest_unconfigure(config):
 # modules by their number of tests, which leaves the few long training modules for last: one worker then runs
 # them alone while the other has nothing left to do. Longest first lets the short modules fill the end.
 LONGEST_FIRST = (
-    "test_ppo.py", "test_sweep.py", "test_env.py", "test_orca.py", "test_notebooks.py", "test_shards.py",
-    "test_predictor_train.py", "test_evaluate.py", "test_reproduce.py", "test_nets.py", "test_predictor_env.py",
-    "test_curves.py", "test_train_cli.py", "test_render.py", "test_lock.py", "test_properties.py", "test_frames.py",
-    "test_batching.py", "test_compile_cache.py", "test_bad_inputs.py", "test_predictor_parity.py",
-    "test_pretrained.py", "test_cpu.py",
+    "test_ppo.py",
+    "test_sweep.py",
+    "test_env.py",
+    "test_orca.py",
+    "test_notebooks.py",
+    "test_shards.py",
+    "test_predictor_train.py",
+    "test_evaluate.py",
+    "test_reproduce.py",
+    "test_nets.py",
+    "test_predictor_env.py",
+    "test_curves.py",
+    "test_train_cli.py",
+    "test_render.py",
+    "test_lock.py",
+    "test_properties.py",
+    "test_frames.py",
+    "test_batching.py",
+    "test_compile_cache.py",
+    "test_bad_inputs.py",
+    "test_predictor_parity.py",
+    "test_pretrained.py",
+    "test_cpu.py",
 )
 
 

@@ -32,8 +32,14 @@ def tiny_config(**sections) -> TrainConfig:
     base = {
         "env": {"num_humans": 0, "predictor": "none"},
         "network": {"name": "mlp", "size": "small"},
-        "ppo": {"num_envs": 8, "num_steps": 8, "total_steps": 8 * 8 * 4, "update_epochs": 2, "num_minibatches": 2,
-                "num_shards": 1},
+        "ppo": {
+            "num_envs": 8,
+            "num_steps": 8,
+            "total_steps": 8 * 8 * 4,
+            "update_epochs": 2,
+            "num_minibatches": 2,
+            "num_shards": 1,
+        },
     }
     for k, v in sections.items():
         base.setdefault(k, {}).update(v)
@@ -45,8 +51,9 @@ def make_env(**overrides) -> CrowdNavEnv:
     return CrowdNavEnv(overrides, reward)
 
 
-def hand_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None, radius=0.3, v_pref=1.0,
-               neighbor_dist=10.0):
+def hand_state(
+    robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None, radius=0.3, v_pref=1.0, neighbor_dist=10.0
+):
     """An EnvState with the robot and humans exactly where a test wants them."""
     human_pos = jnp.asarray(human_pos, jnp.float32).reshape(-1, 2)
     n = human_pos.shape[0]
@@ -54,18 +61,30 @@ def hand_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None
     # Default goals lie far away so no human counts as arrived (and respawns) during a short test.
     human_goal = human_pos + jnp.array([0.0, 100.0]) if human_goal is None else jnp.asarray(human_goal, jnp.float32)
     robot = Robot(
-        pos=jnp.asarray(robot_pos, jnp.float32), vel=jnp.zeros(2), goal=jnp.asarray(robot_goal, jnp.float32),
-        heading=jnp.float32(jnp.pi / 2), speed=jnp.float32(0.0),
+        pos=jnp.asarray(robot_pos, jnp.float32),
+        vel=jnp.zeros(2),
+        goal=jnp.asarray(robot_goal, jnp.float32),
+        heading=jnp.float32(jnp.pi / 2),
+        speed=jnp.float32(0.0),
     )
     humans = Humans(
-        pos=human_pos, vel=human_vel, goal=human_goal,
-        radius=jnp.full((n,), radius, jnp.float32), v_pref=jnp.full((n,), v_pref, jnp.float32),
+        pos=human_pos,
+        vel=human_vel,
+        goal=human_goal,
+        radius=jnp.full((n,), radius, jnp.float32),
+        v_pref=jnp.full((n,), v_pref, jnp.float32),
         active=jnp.ones((n,), bool),
     )
-    return EnvState(robot=robot, humans=humans, goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
-                    step_count=jnp.zeros((), jnp.int32), orca_neighbor_dist=jnp.float32(neighbor_dist),
-                    scenario=jnp.zeros((), jnp.int32), obstacles=obstacles_lib.empty(),
-                    obstacles_dropped=jnp.zeros((), jnp.int32))
+    return EnvState(
+        robot=robot,
+        humans=humans,
+        goal_dist_ref=jnp.linalg.norm(robot.pos - robot.goal),
+        step_count=jnp.zeros((), jnp.int32),
+        orca_neighbor_dist=jnp.float32(neighbor_dist),
+        scenario=jnp.zeros((), jnp.int32),
+        obstacles=obstacles_lib.empty(),
+        obstacles_dropped=jnp.zeros((), jnp.int32),
+    )
 
 
 def rollout(env, key, params, n_steps, policy_fn):
@@ -99,9 +118,9 @@ COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 class CompileCounter:
     """Counts jaxpr traces and XLA backend compilations while active (a context manager):
 
-        with CompileCounter() as c:
-            ...
-        assert c.compiles == 0
+    with CompileCounter() as c:
+        ...
+    assert c.compiles == 0
     """
 
     def __enter__(self):

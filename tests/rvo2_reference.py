@@ -47,15 +47,24 @@ def random_scene(rng: np.random.Generator, n: int = 20, side: float = 8.0) -> Sc
     return Scene(f(pos), f(vel), f(radius), pref_towards(f(pos), f(goal)), f(max_speed))
 
 
-def make_sim(scene: Scene, *, time_horizon, dt, neighbor_dist, max_neighbors, obstacles=None,
-             time_horizon_obst=None) -> rvo2.PyRVOSimulator:
+def make_sim(
+    scene: Scene, *, time_horizon, dt, neighbor_dist, max_neighbors, obstacles=None, time_horizon_obst=None
+) -> rvo2.PyRVOSimulator:
     """An RVO2 simulator holding the scene's agents and, optionally, obstacles (vertices (M, V, 2),
     num_vertices (M,)), added slot by slot as ``orca.solve`` reads them, then processed (the kd-tree)."""
     th_obst = time_horizon if time_horizon_obst is None else time_horizon_obst
     sim = rvo2.PyRVOSimulator(dt, neighbor_dist, max_neighbors, time_horizon, th_obst, 0.3, 1.0)
     for i in range(len(scene.radius)):
-        sim.addAgent(tuple(map(float, scene.pos[i])), neighbor_dist, max_neighbors, time_horizon, th_obst,
-                     float(scene.radius[i]), float(scene.max_speed[i]), tuple(map(float, scene.vel[i])))
+        sim.addAgent(
+            tuple(map(float, scene.pos[i])),
+            neighbor_dist,
+            max_neighbors,
+            time_horizon,
+            th_obst,
+            float(scene.radius[i]),
+            float(scene.max_speed[i]),
+            tuple(map(float, scene.vel[i])),
+        )
         sim.setAgentPrefVelocity(i, tuple(map(float, scene.pref[i])))
     if obstacles is not None:
         for polygon in polygons(*obstacles):
@@ -86,7 +95,7 @@ def pack_obstacles(polys, slots: int, max_vertices: int):
     vertices = np.zeros((slots, max_vertices, 2), np.float32)
     counts = np.zeros((slots,), np.int32)
     for m, p in enumerate(polys):
-        vertices[m, :len(p)] = p
+        vertices[m, : len(p)] = p
         counts[m] = len(p)
     return vertices, counts
 
@@ -147,8 +156,7 @@ def random_obstacles(rng: np.random.Generator, kind: str, side: float = 10.0) ->
 OBSTACLE_KINDS = ("walls", "boxes", "mixed", "doorway", "corridor")
 
 
-def scene_near_obstacles(rng: np.random.Generator, polys, n: int = 20, side: float = 10.0,
-                         near: float = 0.3) -> Scene:
+def scene_near_obstacles(rng: np.random.Generator, polys, n: int = 20, side: float = 10.0, near: float = 0.3) -> Scene:
     """``random_scene``-like agents in a side x side square, a share ``near`` of them placed just off an
     obstacle edge (on its outer side, the centre at the radius plus U(-0.05, 0.15) from the edge: touching,
     slightly overlapping or close), with random velocities and goals."""
@@ -168,5 +176,11 @@ def scene_near_obstacles(rng: np.random.Generator, polys, n: int = 20, side: flo
 def error_summary(errors: np.ndarray, tol: float = 1e-3) -> dict:
     """Distribution of per-agent velocity errors (m/s)."""
     e = np.asarray(errors, np.float64).ravel()
-    return dict(n=int(e.size), max=float(e.max()), p99=float(np.quantile(e, 0.99)),
-                p50=float(np.median(e)), frac_within=float(np.mean(e <= tol)), tol=tol)
+    return dict(
+        n=int(e.size),
+        max=float(e.max()),
+        p99=float(np.quantile(e, 0.99)),
+        p50=float(np.median(e)),
+        frac_within=float(np.mean(e <= tol)),
+        tol=tol,
+    )

@@ -38,7 +38,8 @@ def test_cond_gathered_equals_lax_cond_unbatched_and_batched():
         np.testing.assert_array_equal(got["n"], want["n"])
     # an unbatched operand and a nested vmap (the outer level falls back to a select)
     got = jax.vmap(jax.vmap(lambda p, a: cond_gathered(p, _bump, _keep, a, y)))(
-        jnp.asarray([[True, False], [False, False]]), jnp.ones((2, 2, 3)))
+        jnp.asarray([[True, False], [False, False]]), jnp.ones((2, 2, 3))
+    )
     np.testing.assert_array_equal(got["n"], [[1, 0], [0, 0]])
     np.testing.assert_array_equal(got["x"][0, 0], np.full(3, 2.5))
     np.testing.assert_array_equal(got["x"][1, 1], np.ones(3))

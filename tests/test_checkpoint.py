@@ -16,8 +16,11 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def state(step: int) -> dict:
-    return {"params": {"w": np.arange(2000, dtype=np.float32) + step, "b": np.full(3, step, np.int32)},
-            "humans": np.zeros((4, 0, 2), np.float32), "update": np.int32(step)}
+    return {
+        "params": {"w": np.arange(2000, dtype=np.float32) + step, "b": np.full(3, step, np.int32)},
+        "humans": np.zeros((4, 0, 2), np.float32),
+        "update": np.int32(step),
+    }
 
 
 @pytest.fixture
@@ -49,11 +52,14 @@ def drop_digest(step_dir):
     shutil.rmtree(step_dir / "digest")
 
 
-@pytest.mark.parametrize("damage, reason", [
-    (flip_a_bit, "its content does not match the checksum written with it"),  # reads, with other values
-    (overwrite, r"it cannot be read \(.*\)"),
-    (drop_digest, r"its checksum \(digest/\) is missing, so its content cannot be verified"),
-])
+@pytest.mark.parametrize(
+    "damage, reason",
+    [
+        (flip_a_bit, "its content does not match the checksum written with it"),  # reads, with other values
+        (overwrite, r"it cannot be read \(.*\)"),
+        (drop_digest, r"its checksum \(digest/\) is missing, so its content cannot be verified"),
+    ],
+)
 def test_a_damaged_step_is_an_error_naming_the_step_and_the_intact_ones(saved, damage, reason):
     damage(saved.path(12))
     flip_a_bit(saved.path(4))  # an earlier damaged step is not offered as intact
@@ -67,14 +73,20 @@ def test_a_damaged_step_is_an_error_naming_the_step_and_the_intact_ones(saved, d
 def test_a_step_that_does_not_fit_says_what_it_holds(saved):
     bigger = state(0)
     bigger["params"]["w"] = np.zeros(4000, np.float32)
-    with pytest.raises(CheckpointError, match=r"does not fit this config: params: 2,003 values in the checkpoint, "
-                                              r"4,003 here \(e.g. params/w \(2000,\) in the checkpoint, \(4000,\) "
-                                              r"here\)"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"does not fit this config: params: 2,003 values in the checkpoint, "
+        r"4,003 here \(e.g. params/w \(2000,\) in the checkpoint, \(4000,\) "
+        r"here\)",
+    ):
         saved.restore(bigger)
     renamed = state(0)
     renamed["params"]["v"] = renamed["params"].pop("w")
-    with pytest.raises(CheckpointError, match=r"params/v absent in the checkpoint, \(2000,\) here; params/w \(2000,\) "
-                                              r"in the checkpoint, absent here"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"params/v absent in the checkpoint, \(2000,\) here; params/w \(2000,\) "
+        r"in the checkpoint, absent here",
+    ):
         saved.restore(renamed)
 
 
@@ -93,8 +105,11 @@ def test_a_step_without_a_checksum_is_refused_not_restored_unverified(tmp_path):
     legacy.wait_until_finished()
     legacy.close()
     ckpt = Checkpointer(tmp_path)
-    with pytest.raises(CheckpointError, match=r"/2' \(step 2\) is damaged: its checksum \(digest/\) is missing, so "
-                                              r"its content cannot be verified; no earlier step is intact$"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"/2' \(step 2\) is damaged: its checksum \(digest/\) is missing, so "
+        r"its content cannot be verified; no earlier step is intact$",
+    ):
         ckpt.restore(plain(0))
     ckpt.save(4, plain(4))  # a resumed run goes on writing verified steps
     assert tree_digest(ckpt.restore(plain(0))) == tree_digest(plain(4))
@@ -104,8 +119,10 @@ def test_a_step_without_a_checksum_is_refused_not_restored_unverified(tmp_path):
 
 
 def test_no_data_file_of_a_large_step_grows_past_its_cap(tmp_path):
-    big = {"rollout": np.random.default_rng(0).random((5, 400_000), np.float32),  # 8 MB, one array
-           "params": {f"w{i}": np.full((300, 300), i, np.float32) for i in range(8)}}  # 2.9 MB in small arrays
+    big = {
+        "rollout": np.random.default_rng(0).random((5, 400_000), np.float32),  # 8 MB, one array
+        "params": {f"w{i}": np.full((300, 300), i, np.float32) for i in range(8)},
+    }  # 2.9 MB in small arrays
     ckpt = Checkpointer(tmp_path)
     ckpt.save(1, big)
     sizes = [f.stat().st_size for f in ckpt.path(1).rglob("*") if f.is_file()]
@@ -117,11 +134,19 @@ def test_no_data_file_of_a_large_step_grows_past_its_cap(tmp_path):
 
 def test_a_step_written_in_one_file_per_item_still_restores(tmp_path):
     """Steps saved before data files were capped (orbax's StandardSave, one large data file) resume as they are."""
-    legacy = ocp.CheckpointManager(tmp_path, options=ocp.CheckpointManagerOptions(enable_async_checkpointing=False),
-                                   item_names=("default", "digest"))
+    legacy = ocp.CheckpointManager(
+        tmp_path,
+        options=ocp.CheckpointManagerOptions(enable_async_checkpointing=False),
+        item_names=("default", "digest"),
+    )
     stored = {**state(3), "humans": np.zeros(1, np.float32)}  # zero-size arrays were stored as one element then too
-    legacy.save(3, args=ocp.args.Composite(default=ocp.args.StandardSave(stored),
-                                           digest=ocp.args.JsonSave({"sha256": tree_digest(state(3))})), force=True)
+    legacy.save(
+        3,
+        args=ocp.args.Composite(
+            default=ocp.args.StandardSave(stored), digest=ocp.args.JsonSave({"sha256": tree_digest(state(3))})
+        ),
+        force=True,
+    )
     legacy.wait_until_finished()
     legacy.close()
     ckpt = Checkpointer(tmp_path)
@@ -158,7 +183,6 @@ def test_a_run_without_humans_checkpoints_and_resumes(tmp_path):
     assert again.updates == 0 and tree_digest(again.state) == tree_digest(first.state)
 
 
-
 def test_closed_event_loop_callbacks_of_a_failed_restore_are_muted_and_nothing_else():
     """A failed restore leaves tensorstore reads in flight that complete into orbax's closed event loop; Python
     reports each as an unraisable exception (hundreds of tracebacks after a one-line error). The process-wide hook
@@ -182,8 +206,9 @@ def test_closed_event_loop_callbacks_of_a_failed_restore_are_muted_and_nothing_e
         other = e
 
     def unraisable(exc):
-        return types.SimpleNamespace(exc_type=type(exc), exc_value=exc, exc_traceback=exc.__traceback__,
-                                     err_msg=None, object=None)
+        return types.SimpleNamespace(
+            exc_type=type(exc), exc_value=exc, exc_traceback=exc.__traceback__, err_msg=None, object=None
+        )
 
     passed_on = []
     hook = checkpoint._muting(passed_on.append)
@@ -195,6 +220,12 @@ def test_closed_event_loop_callbacks_of_a_failed_restore_are_muted_and_nothing_e
     import subprocess
 
     code = "import sys, tgrf_jax.storage.checkpoint; print(sys.unraisablehook._tgrf_mutes_closed_loop)"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False,
-                         env={**__import__("os").environ, "JAX_PLATFORMS": "cpu"}, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=False,
+        env={**__import__("os").environ, "JAX_PLATFORMS": "cpu"},
+        timeout=120,
+    )
     assert out.stdout.strip() == "True", out.stderr[-2000:]

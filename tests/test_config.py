@@ -43,7 +43,10 @@ def test_bad_env_config_names_field_and_allowed_values(data, pattern):
 def test_bad_reward_config():
     with pytest.raises(ConfigError, match=r"reward.sigma_disc = 0.0 is out of range; allowed: > 0.0"):
         reward_config_from_dict({"sigma_disc": 0})
-    with pytest.raises(ConfigError, match=r"reward.scheme = 'scan' is not allowed; allowed: 'tgrf', 'crowdnav_pp', 'dsrnn', 'tgrf_circle'"):
+    with pytest.raises(
+        ConfigError,
+        match=r"reward.scheme = 'scan' is not allowed; allowed: 'tgrf', 'crowdnav_pp', 'dsrnn', 'tgrf_circle'",
+    ):
         reward_config_from_dict({"scheme": "scan"})
     with pytest.raises(ConfigError, match=r"unknown config key 'reward.hdisc' \(did you mean 'h_disc'\?\)"):
         reward_config_from_dict({"hdisc": 1.0})
@@ -90,10 +93,13 @@ def test_overrides_parse_yaml_scalars():
         apply_overrides({}, ["env.num_humans"])
 
 
-@pytest.mark.parametrize("text, message", [
-    ("ppo:\n  lr: 1.0e-4\nppo:\n  num_envs: 8\n", "found duplicate key 'ppo' (first given on line 1)"),
-    ("env:\n  dt: 0.25\n  dt: 0.1\n", "found duplicate key 'dt' (first given on line 2)"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("ppo:\n  lr: 1.0e-4\nppo:\n  num_envs: 8\n", "found duplicate key 'ppo' (first given on line 1)"),
+        ("env:\n  dt: 0.25\n  dt: 0.1\n", "found duplicate key 'dt' (first given on line 2)"),
+    ],
+)
 def test_duplicate_yaml_keys_are_rejected(tmp_path, text, message):
     path = tmp_path / "c.yaml"
     path.write_text(text)

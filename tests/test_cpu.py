@@ -31,15 +31,19 @@ def test_avx512_is_read_from_the_cpu_flags():
 
 
 def test_importing_the_package_changes_no_process_state():
-    code = ("import json, os; import tgrf_jax, tgrf_jax.cli, tgrf_jax.sweep, tgrf_jax.render, tgrf_jax.train; "
-            "print(json.dumps({'flags': os.environ.get('XLA_FLAGS')}))")
+    code = (
+        "import json, os; import tgrf_jax, tgrf_jax.cli, tgrf_jax.sweep, tgrf_jax.render, tgrf_jax.train; "
+        "print(json.dumps({'flags': os.environ.get('XLA_FLAGS')}))"
+    )
     assert _probe(code, None)["flags"] is None
     assert _probe(code, "--xla_cpu_prefer_vector_width=256")["flags"] == "--xla_cpu_prefer_vector_width=256"
 
 
 def test_configure_cpu_adds_devices_and_wide_vectors_before_jax_starts():
-    code = ("import json, os, tgrf_jax; a = tgrf_jax.configure_cpu(2); b = tgrf_jax.configure_cpu(2); import jax; "
-            "print(json.dumps({'a': a, 'b': b, 'devices': len(jax.devices()), 'flags': os.environ['XLA_FLAGS']}))")
+    code = (
+        "import json, os, tgrf_jax; a = tgrf_jax.configure_cpu(2); b = tgrf_jax.configure_cpu(2); import jax; "
+        "print(json.dumps({'a': a, 'b': b, 'devices': len(jax.devices()), 'flags': os.environ['XLA_FLAGS']}))"
+    )
     r = _probe(code, "")
     wide = {cpu.WIDTH_FLAG: "512"} if cpu.has_avx512() else {}
     assert r["a"] == dict(wide, **{cpu.DEVICE_COUNT_FLAG: "2"}) and r["b"] == {} and r["devices"] == 2

@@ -15,8 +15,16 @@ def _padded(state, capacity):
     h = state.humans
     extra = capacity - h.pos.shape[0]
     pad = lambda x, v=0.0: jnp.concatenate([x, jnp.full((extra,) + x.shape[1:], v, x.dtype)])  # noqa: E731
-    humans = scenario.park(h.replace(pos=pad(h.pos), vel=pad(h.vel), goal=pad(h.goal), radius=pad(h.radius, 0.4),
-                                     v_pref=pad(h.v_pref, 1.0), active=pad(h.active, False)))
+    humans = scenario.park(
+        h.replace(
+            pos=pad(h.pos),
+            vel=pad(h.vel),
+            goal=pad(h.goal),
+            radius=pad(h.radius, 0.4),
+            v_pref=pad(h.v_pref, 1.0),
+            active=pad(h.active, False),
+        )
+    )
     return state.replace(humans=humans)
 
 
@@ -45,8 +53,7 @@ def test_inactive_slots_change_nothing(policy):
     """10 humans in a capacity-30 env step exactly as the same 10 in a capacity-10 env: goal changes and
     respawns included (60 steps), robot, humans, rewards, observations and metrics."""
     small = make_env(num_humans=10, human_policy=policy, goal_change_prob=1.0)
-    big = make_env(num_humans=30, human_policy=policy, goal_change_prob=1.0, active_humans_min=10,
-                   active_humans_max=10)
+    big = make_env(num_humans=30, human_policy=policy, goal_change_prob=1.0, active_humans_min=10, active_humans_max=10)
     state = _crossing_state(10)
     a_obs, a_state, a_rew, a_info = _run(small, state)
     b_obs, b_state, b_rew, b_info = _run(big, _padded(state, 30))
@@ -64,14 +71,17 @@ def test_inactive_slots_change_nothing(policy):
     np.testing.assert_array_equal(a_obs.human_mask, b_obs.human_mask[:, :10])
     assert not np.asarray(b_obs.human_mask[:, 10:]).any() and not np.asarray(b_obs.humans[:, 10:]).any()
     # The parked slots never moved.
-    np.testing.assert_array_equal(b_state.humans.pos[:, 10:], np.broadcast_to(_padded(state, 30).humans.pos[10:],
-                                                                              b_state.humans.pos[:, 10:].shape))
+    np.testing.assert_array_equal(
+        b_state.humans.pos[:, 10:],
+        np.broadcast_to(_padded(state, 30).humans.pos[10:], b_state.humans.pos[:, 10:].shape),
+    )
 
 
 def test_active_count_is_drawn_per_episode_in_range():
     env = make_env(num_humans=12, active_humans_min=3, active_humans_max=7)
-    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(0), 400),
-                                                                  env.default_params)
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(
+        jax.random.split(jax.random.key(0), 400), env.default_params
+    )
     active = np.asarray(state.humans.active)
     counts = active.sum(1)
     assert set(counts.tolist()) == set(range(3, 8))
@@ -92,7 +102,8 @@ def test_one_program_any_crowd_size_and_zero_humans():
         def body(carry, key):
             obs, state = carry
             obs, state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(key, 4), state, jax.vmap(to_goal)(obs), params)
+                jax.random.split(key, 4), state, jax.vmap(to_goal)(obs), params
+            )
             return (obs, state), (reward, info.num_visible, state.humans.active.sum(-1))
 
         return jax.lax.scan(body, (obs, state), jax.random.split(jax.random.key(2), 30))[1]
@@ -100,8 +111,9 @@ def test_one_program_any_crowd_size_and_zero_humans():
     play(params.replace(active_humans_min=jnp.float32(0), active_humans_max=jnp.float32(0)))
     with CompileCounter() as counter:
         for n in (0, 5, 10, 20, 30):
-            rew, visible, active = play(params.replace(active_humans_min=jnp.float32(n),
-                                                       active_humans_max=jnp.float32(n)))
+            rew, visible, active = play(
+                params.replace(active_humans_min=jnp.float32(n), active_humans_max=jnp.float32(n))
+            )
             assert np.all(np.asarray(active) == n) and np.all(np.isfinite(np.asarray(rew)))
             assert np.asarray(visible).max() <= n
             if n == 0:
@@ -109,14 +121,22 @@ def test_one_program_any_crowd_size_and_zero_humans():
     assert counter.compiles == 0
 
 
-@pytest.mark.parametrize("fields, message", [
-    ({"num_humans": 10, "active_humans_max": 11}, "env.active_humans_max = 11 must be <= env.num_humans = 10"),
-    ({"num_humans": 10, "active_humans_min": 8, "active_humans_max": 5},
-     "env.active_humans_min = 8 must be <= env.active_humans_max = 5"),
-    ({"num_humans": 10, "active_humans_min": 12}, "env.active_humans_min = 12 must be <= env.active_humans_max = 10"),
-    ({"active_humans_min": 2.5}, "env.active_humans_min = 2.5 must be an integer"),
-    ({"active_humans_max": -1}, "env.active_humans_max = -1 is out of range"),
-])
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        ({"num_humans": 10, "active_humans_max": 11}, "env.active_humans_max = 11 must be <= env.num_humans = 10"),
+        (
+            {"num_humans": 10, "active_humans_min": 8, "active_humans_max": 5},
+            "env.active_humans_min = 8 must be <= env.active_humans_max = 5",
+        ),
+        (
+            {"num_humans": 10, "active_humans_min": 12},
+            "env.active_humans_min = 12 must be <= env.active_humans_max = 10",
+        ),
+        ({"active_humans_min": 2.5}, "env.active_humans_min = 2.5 must be an integer"),
+        ({"active_humans_max": -1}, "env.active_humans_max = -1 is out of range"),
+    ],
+)
 def test_bad_crowd_bounds(fields, message):
     with pytest.raises(ConfigError, match=message.replace("[", r"\[")):
         EnvConfig.from_dict(fields)
@@ -170,19 +190,20 @@ def test_every_scenario_resets_and_steps(name):
         assert np.all(goal[..., 1] > 0) and np.all(np.asarray(h.v_pref) <= 0.75)
     if name == "robot_crowding":
         assert np.all(np.abs(goal[..., 0]) <= 0.5) and np.all(np.abs(goal[..., 1]) <= a)
-    if name in ("parallel_traffic", "perpendicular_traffic", "frontal_approach", "robot_overtaking",
-                "robot_crowding"):
+    if name in ("parallel_traffic", "perpendicular_traffic", "frontal_approach", "robot_overtaking", "robot_crowding"):
         np.testing.assert_allclose(np.asarray(r.pos[:, 1]), -a)
         np.testing.assert_allclose(np.asarray(r.goal[:, 1]), a)
 
     def body(carry, key):
         obs, state = carry
         obs, state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-            jax.random.split(key, 16), state, jax.vmap(to_goal)(obs), params)
+            jax.random.split(key, 16), state, jax.vmap(to_goal)(obs), params
+        )
         return (obs, state), (reward, state.humans.goal, state.scenario)
 
-    rew, goals, index = jax.jit(lambda c: jax.lax.scan(body, c, jax.random.split(jax.random.key(1), 40)))(
-        (obs, state))[1]
+    rew, goals, index = jax.jit(lambda c: jax.lax.scan(body, c, jax.random.split(jax.random.key(1), 40)))((obs, state))[
+        1
+    ]
     assert np.all(np.isfinite(np.asarray(rew))) and np.all(np.asarray(index) == SCENARIOS.index(name))
     assert not np.array_equal(goals[-1], goal)  # goal changes and respawns happened
     if name == "perpendicular_traffic":
@@ -226,17 +247,27 @@ def test_mix_with_one_weight_plays_that_scenario(name):
     np.testing.assert_array_equal(ra[4].outcome, rb[4].outcome)
 
 
-@pytest.mark.parametrize("fields, message", [
-    ({"scenario": "hallway"}, "env.scenario = 'hallway' is not allowed; allowed: one of 'circle_crossing', "
-                              "'square_crossing', 'parallel_traffic'"),
-    ({"scenario": "mix", "scenario_weights": [1, 1]}, "env.scenario_weights has 2 value"),
-    ({"scenario": "mix", "scenario_weights": [1, 1, 1, -1, 1, 1, 1, 1]}, "has a negative or non-finite weight"),
-    ({"scenario": "mix", "scenario_weights": [0] * 8}, "are all zero; allowed: 8 non-negative numbers"),
-    ({"scenario": "mix", "scenario_weights": "uniform"}, "env.scenario_weights = 'uniform' must be a list of 8 "
-                                                         "numbers"),
-    ({"scenario": "mix", "scenario_weights": [1, "x", 1, 1, 1, 1, 1, 1]},
-     r"env.scenario_weights\[1\] = 'x' must be a number"),
-])
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        (
+            {"scenario": "hallway"},
+            "env.scenario = 'hallway' is not allowed; allowed: one of 'circle_crossing', "
+            "'square_crossing', 'parallel_traffic'",
+        ),
+        ({"scenario": "mix", "scenario_weights": [1, 1]}, "env.scenario_weights has 2 value"),
+        ({"scenario": "mix", "scenario_weights": [1, 1, 1, -1, 1, 1, 1, 1]}, "has a negative or non-finite weight"),
+        ({"scenario": "mix", "scenario_weights": [0] * 8}, "are all zero; allowed: 8 non-negative numbers"),
+        (
+            {"scenario": "mix", "scenario_weights": "uniform"},
+            "env.scenario_weights = 'uniform' must be a list of 8 numbers",
+        ),
+        (
+            {"scenario": "mix", "scenario_weights": [1, "x", 1, 1, 1, 1, 1, 1]},
+            r"env.scenario_weights\[1\] = 'x' must be a number",
+        ),
+    ],
+)
 def test_bad_scenarios(fields, message):
     with pytest.raises(ConfigError, match=message):
         EnvConfig.from_dict(fields)

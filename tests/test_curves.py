@@ -80,7 +80,8 @@ def test_sweep_writes_curves_of_every_run(tmp_path):
     run_sweep(spec, tmp_path / "sweep", log=lambda m: None)
     rows = read(tmp_path / "sweep" / "eval_curves.csv")
     assert sorted((r["reward.scheme"], r["update"]) for r in rows) == sorted(
-        (s, u) for s in ("tgrf", "crowdnav_pp") for u in ("4", "8", "12"))
+        (s, u) for s in ("tgrf", "crowdnav_pp") for u in ("4", "8", "12")
+    )
     for run in {r["run"] for r in rows}:
         assert len(read(tmp_path / "sweep" / "runs" / run / "eval_curve.csv")) == 3
     assert (tmp_path / "sweep" / "eval_curves.png").stat().st_size > 10_000
@@ -94,8 +95,13 @@ def test_a_run_compiles_its_training_program_once(tmp_path, monkeypatch):
     traces = []
     real_update = Trainer.update
     monkeypatch.setattr(Trainer, "update", lambda self, ts: traces.append(1) or real_update(self, ts))
-    sets = ["run.log_every=2", "run.checkpoint_every=3", "run.eval_every=5", "run.curve_episodes=8",
-            "run.eval_episodes=0"]
+    sets = [
+        "run.log_every=2",
+        "run.checkpoint_every=3",
+        "run.eval_every=5",
+        "run.curve_episodes=8",
+        "run.eval_episodes=0",
+    ]
     result = train_run(TrainConfig.from_yaml(TINY, sets), tmp_path / "run", log=lambda m: None)
     assert result.updates == 12
     assert len(read(tmp_path / "run" / "metrics.csv")) == 9  # chunks ending at 2, 3, 4, 5, 6, 8, 9, 10, 12

@@ -58,12 +58,18 @@ def record(source: PolicySource, episodes: int = 2, max_steps: int = 40, seed: i
             r, h = jax.device_get(state.robot), jax.device_get(state.humans)
             o = jax.device_get(obs)
             lidar = (o.lidar,) if config.env.lidar_rays else ()
-            steps.append(dict(
-                robot=np.array([r.pos[0], r.pos[1], r.heading, r.vel[0], r.vel[1]]), goal=np.asarray(r.goal),
-                humans=np.concatenate([h.pos, h.vel, h.radius[:, None]], axis=1), lidar=o.lidar,
-                obs=(o.robot_node, o.robot_vel, o.humans, o.human_mask.astype(np.float32), *lidar),
-                state=step_info.state_from_carry(carry), new_state=step_info.state_from_carry(new_carry),
-                action=np.asarray(action[0])))
+            steps.append(
+                dict(
+                    robot=np.array([r.pos[0], r.pos[1], r.heading, r.vel[0], r.vel[1]]),
+                    goal=np.asarray(r.goal),
+                    humans=np.concatenate([h.pos, h.vel, h.radius[:, None]], axis=1),
+                    lidar=o.lidar,
+                    obs=(o.robot_node, o.robot_vel, o.humans, o.human_mask.astype(np.float32), *lidar),
+                    state=step_info.state_from_carry(carry),
+                    new_state=step_info.state_from_carry(new_carry),
+                    action=np.asarray(action[0]),
+                )
+            )
             key, k = jax.random.split(key)
             obs, state, _, terminated, truncated, _ = step(k, state, action[0], params)
             carry = new_carry
@@ -233,8 +239,12 @@ def test_navigator_capacity_none_and_non_finite(const_vel):
     nav.reset()
     assert np.array_equal(nav.act(robot, goal, None).action, empty.action)
 
-    bad = [Detection((1.0, 0.5), (0.0, 0.0), 0.3), Detection((np.nan, 1.0), (0.0, 0.0)),
-           Detection((1.0, 1.0), (np.inf, 0.0)), {"position": (2.0, 0.0), "velocity": (0.0, 0.0), "radius": np.nan}]
+    bad = [
+        Detection((1.0, 0.5), (0.0, 0.0), 0.3),
+        Detection((np.nan, 1.0), (0.0, 0.0)),
+        Detection((1.0, 1.0), (np.inf, 0.0)),
+        {"position": (2.0, 0.0), "velocity": (0.0, 0.0), "radius": np.nan},
+    ]
     nav.reset()
     d = nav.act(robot, goal, bad)
     assert (d.num_detected, d.num_dropped, d.num_used) == (4, 3, 1)
@@ -289,8 +299,17 @@ RAYS = 16
 @pytest.fixture(scope="module")
 def lidar_source():
     # An untrained small HH Attn (its scan encoder included) in the corridor, whose walls the scan sees.
-    config = TrainConfig.from_dict({"env": {"scenario": "corridor", "lidar_rays": RAYS, "num_humans": 3,
-                                            "human_policy": "social_force", "predictor": "none"}})
+    config = TrainConfig.from_dict(
+        {
+            "env": {
+                "scenario": "corridor",
+                "lidar_rays": RAYS,
+                "num_humans": 3,
+                "human_policy": "social_force",
+                "predictor": "none",
+            }
+        }
+    )
     params = jax.device_get(jax.jit(make_network_for(config).init)(jax.random.PRNGKey(5)))
     return PolicySource(config, params, {"test": "untrained lidar"})
 
@@ -326,8 +345,9 @@ def test_lidar_export_matches_env_policy(lidar_exported, lidar_episodes):
         worst = 0.0
         for s in lidar_episodes[0]:
             action, new_state = run(*s["obs"], s["state"])
-            worst = max(worst, float(np.max(np.abs(action - s["action"]))),
-                        float(np.max(np.abs(new_state - s["new_state"]))))
+            worst = max(
+                worst, float(np.max(np.abs(action - s["action"]))), float(np.max(np.abs(new_state - s["new_state"])))
+            )
         assert worst <= 1e-5, (type(run).__name__, worst)
         # beyond the range reads as the range, NaN as no return (the range)
         s = lidar_episodes[0][-1]
@@ -372,10 +392,12 @@ def test_navigator_with_lidar(lidar_source, lidar_exported, lidar_episodes):
     nearer[open_rays[0]] = 0.5
     assert not np.allclose(nav.act(s["robot"], s["goal"], s["humans"], nearer).action, ref.action)
 
-    cases = [(None, r"lidar: this policy reads a 16-ray 2-D LiDAR scan.*ray 0 along the robot's heading"),
-             (np.ones(360), r"lidar has 360 rays but this policy was trained on 16 rays"),
-             (np.ones((2, 16)), r"lidar has shape \(2, 16\) but this policy was trained on 16 rays"),
-             (np.r_[np.ones(15), -1.0], r"lidar\[15\] = -1.0: a range must be >= 0 m")]
+    cases = [
+        (None, r"lidar: this policy reads a 16-ray 2-D LiDAR scan.*ray 0 along the robot's heading"),
+        (np.ones(360), r"lidar has 360 rays but this policy was trained on 16 rays"),
+        (np.ones((2, 16)), r"lidar has shape \(2, 16\) but this policy was trained on 16 rays"),
+        (np.r_[np.ones(15), -1.0], r"lidar\[15\] = -1.0: a range must be >= 0 m"),
+    ]
     for lidar, message in cases:
         with pytest.raises(ValueError, match=message):
             nav.act(s["robot"], s["goal"], s["humans"], lidar)

@@ -105,7 +105,7 @@ def test_danger_reward_and_telescoping_potential():
     obs, s1, reward, term, trunc, info = env.step_env(jax.random.key(0), state, jnp.array([1.0, 0.0]), params)
     dmin = float(info.dmin)
     assert dmin == pytest.approx(0.4, abs=1e-5) and bool(info.intrusion_disc)
-    assert float(reward) == pytest.approx(-2.5 * np.exp(-dmin**2 / 0.08), abs=1e-5)
+    assert float(reward) == pytest.approx(-2.5 * np.exp(-(dmin**2) / 0.08), abs=1e-5)
     assert float(s1.goal_dist_ref) == pytest.approx(9.0)  # reference distance frozen inside the zone
     # Two more steps take it out of the zone: the first r_pot pays for all progress since the reference.
     _, s2, r2, *_ = env.step_env(jax.random.key(1), s1, jnp.array([1.0, 0.0]), params)
@@ -129,8 +129,12 @@ def test_prediction_reward_and_features():
 def test_respawn_and_goal_change():
     env = make_env(num_humans=3, predictor="none", human_policy="social_force")
     params = env.default_params
-    state = hand_state([0.0, 0.0], [0.0, 8.0], [[3.0, 3.0], [-3.0, 3.0], [5.0, -5.0]],
-                       human_goal=[[3.0, 3.05], [-3.0, 8.0], [5.0, -8.0]])
+    state = hand_state(
+        [0.0, 0.0],
+        [0.0, 8.0],
+        [[3.0, 3.0], [-3.0, 3.0], [5.0, -5.0]],
+        human_goal=[[3.0, 3.05], [-3.0, 8.0], [5.0, -8.0]],
+    )
     obs, nxt, *_ = env.step_env(jax.random.key(0), state, jnp.zeros(2), params)
     h = nxt.humans
     r = float(np.linalg.norm(h.pos[0]))
@@ -267,10 +271,17 @@ def test_terminal_step_is_never_a_future_intrusion():
     assert not bool(term_near) and bool(info_near.intrusion_future) and float(info_near.future_dist) < 0.6
 
 
-@pytest.mark.parametrize("action, direction", [
-    ([1e30, -1e30], [1.0, -1.0]), ([3e38, 0.0], [1.0, 0.0]), ([np.inf, -np.inf], [1.0, -1.0]),
-    ([-np.inf, 5.0], [-1.0, 0.0]), ([np.nan, 2.0], [0.0, 1.0]), ([0.3, 0.4], [0.6, 0.8]),
-])
+@pytest.mark.parametrize(
+    "action, direction",
+    [
+        ([1e30, -1e30], [1.0, -1.0]),
+        ([3e38, 0.0], [1.0, 0.0]),
+        ([np.inf, -np.inf], [1.0, -1.0]),
+        ([-np.inf, 5.0], [-1.0, 0.0]),
+        ([np.nan, 2.0], [0.0, 1.0]),
+        ([0.3, 0.4], [0.6, 0.8]),
+    ],
+)
 def test_huge_and_non_finite_actions_keep_their_direction(action, direction):
     env = make_env(num_humans=1, predictor="none")
     params = env.default_params

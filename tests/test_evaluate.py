@@ -74,8 +74,7 @@ def test_episodes_run_in_bounded_batches_with_progress(monkeypatch):
 
     calls = []
     monkeypatch.setattr(ev, "MAX_BATCH", BATCH)
-    batched = evaluate(ENV, StraightPolicy(), jax.random.key(3), 3 * BATCH,
-                       progress=lambda d, n: calls.append((d, n)))
+    batched = evaluate(ENV, StraightPolicy(), jax.random.key(3), 3 * BATCH, progress=lambda d, n: calls.append((d, n)))
     assert calls == [(BATCH, 3 * BATCH), (2 * BATCH, 3 * BATCH), (3 * BATCH, 3 * BATCH)]
     assert batched.n_episodes == 3 * BATCH
     explicit = evaluate(ENV, StraightPolicy(), jax.random.key(3), 3 * BATCH, batch_size=BATCH)

@@ -28,8 +28,9 @@ def transform_world(obs, angle, shift):
     node = node.at[..., 0:2].set(pos).at[..., 3:5].set(goal).at[..., 6].add(angle)
     humans = obs.humans
     pairs = rotate(humans.reshape(humans.shape[:-1] + (-1, 2)), angle).reshape(humans.shape)
-    return obs.replace(robot_node=node, robot_vel=rotate(obs.robot_vel, angle), humans=pairs,
-                       human_vel=rotate(obs.human_vel, angle))
+    return obs.replace(
+        robot_node=node, robot_vel=rotate(obs.robot_vel, angle), humans=pairs, human_vel=rotate(obs.human_vel, angle)
+    )
 
 
 @pytest.mark.parametrize("angle", [0.3, -2.0, 3.1])
@@ -63,8 +64,9 @@ def test_robot_at_its_goal_gives_finite_inputs():
 
 @pytest.mark.parametrize("name", ["hh_attn", "mlp"])
 def test_goal_frame_policy_is_rotation_equivariant(name):
-    net = make_network(name, "small", obs_human_dim=12, num_humans=5, frame="goal", rotate_action=True,
-                       init_log_std=-0.7)
+    net = make_network(
+        name, "small", obs_human_dim=12, num_humans=5, frame="goal", rotate_action=True, init_log_std=-0.7
+    )
     # initialisation and forward passes jitted: run eagerly, every operation is a program of its own
     params = jax.jit(net.init)(jax.random.PRNGKey(0))
     np.testing.assert_allclose(params["params"]["heads"]["log_std"], -0.7)
@@ -137,12 +139,21 @@ def test_scan_frames_put_ray_0_on_world_x_and_on_the_goal():
     rays = 8
     obstacles = obstacles_lib.from_polygons([[[WALL_X, -3.0], [WALL_X, 3.0]]])
     no_one = jnp.zeros((0,))
-    scan = obstacles_lib.lidar_scan(jnp.zeros(2), jnp.float32(np.pi / 2), obstacles, jnp.zeros((0, 2)), no_one,
-                                    no_one.astype(bool), num_rays=rays, max_range=5.0)
+    scan = obstacles_lib.lidar_scan(
+        jnp.zeros(2),
+        jnp.float32(np.pi / 2),
+        obstacles,
+        jnp.zeros((0, 2)),
+        no_one,
+        no_one.astype(bool),
+        num_rays=rays,
+        max_range=5.0,
+    )
     np.testing.assert_allclose(scan[6], WALL_X, rtol=1e-6)  # body ray 6 (3/4 of a turn from +y) along +x
     assert scan[0] == 5.0
     obs = random_obs(jax.random.PRNGKey(0), (1,), 2, 2).replace(
-        robot_node=jnp.array([[0.0, 0.0, 0.3, 0.0, 4.0, 1.0, np.pi / 2]], jnp.float32), lidar=scan[None])
+        robot_node=jnp.array([[0.0, 0.0, 0.3, 0.0, 4.0, 1.0, np.pi / 2]], jnp.float32), lidar=scan[None]
+    )
     world = to_world_frame(obs).lidar[0]
     np.testing.assert_allclose(world, np.roll(np.asarray(scan), 2), rtol=1e-6)
     np.testing.assert_allclose(world[0], WALL_X, rtol=1e-6)
@@ -165,16 +176,26 @@ def scene_obs(angle, shift, rays, turn_heading):
     robot, goal = move([0.5, -1.0]), move([3.0, 2.5])
     humans = move([[1.5, 0.4], [-1.0, 1.2]])
     radii = np.array([0.3, 0.4])
-    polygons = [move([[2.0, -2.5], [3.0, -2.5], [3.0, -1.5], [2.0, -1.5]]).tolist(),
-                move([[-2.0, 2.0], [-2.0, -3.0]]).tolist()]
+    polygons = [
+        move([[2.0, -2.5], [3.0, -2.5], [3.0, -1.5], [2.0, -1.5]]).tolist(),
+        move([[-2.0, 2.0], [-2.0, -3.0]]).tolist(),
+    ]
     obstacles = obstacles_lib.from_polygons(polygons)
     heading = np.pi / 2 + (angle if turn_heading else 0.0)
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    scan = obstacles_lib.lidar_scan(f32(robot), f32(heading), obstacles, f32(humans), f32(radii),
-                                    jnp.ones(2, bool), num_rays=rays, max_range=5.0)
-    obs = Obs(robot_node=f32([*robot, 0.3, *goal, 1.0, heading]), robot_vel=f32(turn([0.3, 0.1])),
-              humans=f32(humans - robot), human_mask=jnp.ones(2, bool), human_vel=f32(turn([[0.5, 0.0], [0.0, -0.5]])),
-              human_radius=f32(radii), lidar=scan, obstacles=obstacles)
+    scan = obstacles_lib.lidar_scan(
+        f32(robot), f32(heading), obstacles, f32(humans), f32(radii), jnp.ones(2, bool), num_rays=rays, max_range=5.0
+    )
+    obs = Obs(
+        robot_node=f32([*robot, 0.3, *goal, 1.0, heading]),
+        robot_vel=f32(turn([0.3, 0.1])),
+        humans=f32(humans - robot),
+        human_mask=jnp.ones(2, bool),
+        human_vel=f32(turn([[0.5, 0.0], [0.0, -0.5]])),
+        human_radius=f32(radii),
+        lidar=scan,
+        obstacles=obstacles,
+    )
     return jax.tree_util.tree_map(lambda x: x[None], obs)
 
 
@@ -189,8 +210,10 @@ def test_goal_frame_scan_is_invariant_to_rotating_the_scene(turn_heading):
         # a heading that stays pi/2 has turned relative to the goal; everything else is the same
         heading = slice(None) if turn_heading else slice(0, 6)
         np.testing.assert_allclose(moved.robot_node[:, heading], base.robot_node[:, heading], atol=2e-5)
-        for x, y in zip(jax.tree_util.tree_leaves(base.replace(robot_node=0, obstacles=0)),
-                        jax.tree_util.tree_leaves(moved.replace(robot_node=0, obstacles=0))):
+        for x, y in zip(
+            jax.tree_util.tree_leaves(base.replace(robot_node=0, obstacles=0)),
+            jax.tree_util.tree_leaves(moved.replace(robot_node=0, obstacles=0)),
+        ):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=2e-4)
     for angle in (0.3, -2.0, 3.1):  # between rays: up to the interpolation error (none when the heading turns too)
         moved, _ = to_goal_frame(scene_obs(angle, np.array([-2.0, 3.0]), rays, turn_heading))
@@ -209,8 +232,9 @@ def test_goal_frame_lidar_policy_is_rotation_equivariant():
     whose scan turns by the heading, does not. (A holonomic robot keeps heading pi/2, an input the policy reads
     in the goal frame as its angle to the goal, so there the scan's invariance is tested above, not the policy's.)"""
     rays = 36
-    goal_net = make_network("hh_attn", "small", obs_human_dim=2, num_humans=2, frame="goal", rotate_action=True,
-                            lidar_rays=rays)
+    goal_net = make_network(
+        "hh_attn", "small", obs_human_dim=2, num_humans=2, frame="goal", rotate_action=True, lidar_rays=rays
+    )
     world_net = make_network("hh_attn", "small", obs_human_dim=2, num_humans=2, lidar_rays=rays)
     params = jax.jit(goal_net.init)(jax.random.PRNGKey(0))  # the same parameters fit both frames
 

@@ -83,8 +83,9 @@ def test_vector_env_same_step_autoreset():
             for i in range(b):
                 if done[i]:
                     # the ended episode's last observation; `obs` already holds the new episode's first
-                    np.testing.assert_allclose(infos["final_obs"][i][:7], np.asarray(ref_info.final_obs.robot_node[i]),
-                                               rtol=1e-6, atol=1e-6)
+                    np.testing.assert_allclose(
+                        infos["final_obs"][i][:7], np.asarray(ref_info.final_obs.robot_node[i]), rtol=1e-6, atol=1e-6
+                    )
                     assert infos["final_info"]["outcome"][i] in (1, 2, 3)
                     assert not np.array_equal(infos["final_obs"][i], obs[i])
                 else:
@@ -106,8 +107,14 @@ def test_vector_env_make_vec_and_bad_input():
         venv.reset(seed=-1)
 
 
-LIDAR = {"num_humans": 2, "time_limit": 3.0, "scenario": "corridor", "lidar_rays": 12,
-         "human_policy": "social_force", "predictor": "none"}
+LIDAR = {
+    "num_humans": 2,
+    "time_limit": 3.0,
+    "scenario": "corridor",
+    "lidar_rays": 12,
+    "human_policy": "social_force",
+    "predictor": "none",
+}
 
 
 def test_lidar_scan_is_part_of_the_observation():
@@ -125,8 +132,12 @@ def test_lidar_scan_is_part_of_the_observation():
         check_env(env)
     assert not caught, [str(w.message) for w in caught]
     # without a scan the layout ends with the mask, as before
-    assert list(obs_layout(CrowdNavEnv(dict(LIDAR, lidar_rays=0)))) == ["robot_node", "robot_vel", "humans",
-                                                                         "human_mask"]
+    assert list(obs_layout(CrowdNavEnv(dict(LIDAR, lidar_rays=0)))) == [
+        "robot_node",
+        "robot_vel",
+        "humans",
+        "human_mask",
+    ]
 
     # the vector env's scan is the batched env's Obs.lidar, body frame and all
     b = 3

@@ -29,8 +29,16 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
 # configs/tiny.yaml (12 updates, checkpoints every 4) on one env shard with one epoch of one minibatch: the
 # smallest programs to compile
-SETS = ["--set", "ppo.num_shards=1", "--set", "ppo.update_epochs=1", "--set", "ppo.num_minibatches=1",
-        "--set", "run.eval_episodes=4"]
+SETS = [
+    "--set",
+    "ppo.num_shards=1",
+    "--set",
+    "ppo.update_epochs=1",
+    "--set",
+    "ppo.num_minibatches=1",
+    "--set",
+    "run.eval_episodes=4",
+]
 GRID = ["--grid", "reward.h_disc=1.0,2.5"]
 
 # Runs a tool's main with a SIGKILL of its own process at one point: "first-save" (the initial checkpoint, before
@@ -88,9 +96,13 @@ sys.exit({"train": train_main, "sweep": sweep_main, "reproduce": reproduce_main,
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
     cache = tmp_path_factory.mktemp("xla_cache")
-    return dict(os.environ, JAX_PLATFORMS="cpu", TGRF_JAX_COMPILE_CACHE=str(cache),
-                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-                PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    return dict(
+        os.environ,
+        JAX_PLATFORMS="cpu",
+        TGRF_JAX_COMPILE_CACHE=str(cache),
+        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+        PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+    )
 
 
 def tool(env, name: str, argv: list[str], kill_at: str | None = None) -> subprocess.CompletedProcess:
@@ -201,7 +213,8 @@ def test_sweep_killed_at_every_stage_ends_as_an_uninterrupted_sweep(env, tmp_pat
     assert (sweep / "summary.md").read_text() == (reference / "summary.md").read_text()
     assert (sweep / "learning_curves.png").stat().st_size > 0
     assert steps(export) == [12] and state_digest(sweep / "runs" / names[0]) == state_digest(
-        reference / "runs" / names[0])
+        reference / "runs" / names[0]
+    )
     assert {p: p.stat().st_mtime_ns for p in kept} == kept  # an intact export is left alone
 
 
@@ -214,11 +227,25 @@ def test_reproduce_killed_between_a_row_s_results_and_its_provenance_reruns_the_
     from tgrf_jax.experiments import runner
 
     exp = tmp_path / "exp.yaml"
-    exp.write_text(yaml.safe_dump({
-        "title": "kill", "layout": "table", "config": TINY, "seeds": 1, "grid": {"reward.scheme": ["tgrf"]},
-        "set": {"ppo.total_steps": 256, "ppo.num_shards": 1, "ppo.update_epochs": 1, "ppo.num_minibatches": 1,
-                "run.eval_episodes": 4},
-        "rows": [{"name": "mlp", "label": "MLP"}]}))
+    exp.write_text(
+        yaml.safe_dump(
+            {
+                "title": "kill",
+                "layout": "table",
+                "config": TINY,
+                "seeds": 1,
+                "grid": {"reward.scheme": ["tgrf"]},
+                "set": {
+                    "ppo.total_steps": 256,
+                    "ppo.num_shards": 1,
+                    "ppo.update_epochs": 1,
+                    "ppo.num_minibatches": 1,
+                    "run.eval_episodes": 4,
+                },
+                "rows": [{"name": "mlp", "label": "MLP"}],
+            }
+        )
+    )
     out, row = tmp_path / "out", tmp_path / "out" / "mlp"
     argv = [str(exp), "--out", str(out)]
 
@@ -250,8 +277,12 @@ def _predictor_dataset(path: pathlib.Path) -> pathlib.Path:
     b, t, n = 5, 40, 3
     times = np.arange(t, dtype=np.float32)[None, :, None, None] * 0.25
     human = rng.uniform(-3, 3, (b, 1, n, 2)) + rng.uniform(-1, 1, (b, 1, n, 2)) * times
-    arrays = {"robot_pos": np.zeros((b, t, 2), np.float32), "human_pos": human.astype(np.float32),
-              "visible": np.ones((b, t, n), bool), "seg": np.zeros((b, t, n), np.int16)}
+    arrays = {
+        "robot_pos": np.zeros((b, t, 2), np.float32),
+        "human_pos": human.astype(np.float32),
+        "visible": np.ones((b, t, n), bool),
+        "seg": np.zeros((b, t, n), np.int16),
+    }
     return data_lib.save_dataset(path, {"arrays": arrays, "config": {"crowd": "orca", "seed": 0}})
 
 
@@ -261,8 +292,24 @@ def test_predictor_training_killed_mid_save_and_mid_training_ends_as_an_uninterr
 
     dataset = _predictor_dataset(tmp_path / "d.npz")
     # dropout: its keys are part of the state that must resume; checkpoints every 4 updates, logs every 2
-    opts = ["--dataset", str(dataset), "--updates", "8", "--batch-size", "4", "--log-every", "2",
-            "--checkpoint-every", "4", "--decay-every", "2", "--eval-windows", "8", "--dropout", "0.1"]
+    opts = [
+        "--dataset",
+        str(dataset),
+        "--updates",
+        "8",
+        "--batch-size",
+        "4",
+        "--log-every",
+        "2",
+        "--checkpoint-every",
+        "4",
+        "--decay-every",
+        "2",
+        "--eval-windows",
+        "8",
+        "--dropout",
+        "0.1",
+    ]
     reference, run = tmp_path / "reference", tmp_path / "run"
     tool(env, "predictor", ["train", *opts, "--run-dir", str(reference)])
     ckpts = run / "checkpoints"
@@ -285,6 +332,7 @@ def test_predictor_training_killed_mid_save_and_mid_training_ends_as_an_uninterr
         from tgrf_jax.storage.checkpoint import Checkpointer
 
         template = predictor_train.init_state(predictor_train.TrainConfig(dropout=0.1))
-        digests = [tree_digest(Checkpointer(d / "checkpoints", create=False).restore(template, step))
-                   for d in (reference, run)]
+        digests = [
+            tree_digest(Checkpointer(d / "checkpoints", create=False).restore(template, step)) for d in (reference, run)
+        ]
         assert digests[0] == digests[1], step

@@ -20,28 +20,15 @@ EPS, VF_COEF, ENT_COEF = 0.2, 0.5, 0.01
 # One minibatch of T = 4 steps x b = 4 envs. The policy ratios straddle [1 - EPS, 1 + EPS] and meet advantages of
 # both signs, so each of the four cases of the clipped objective occurs: below the range with A > 0 and above it
 # with A < 0 keep the unclipped term, the other two are clipped.
-RATIOS = np.array([[0.5, 0.5, 0.79, 0.81],
-                   [1.0, 1.0, 1.19, 1.21],
-                   [1.5, 1.5, 2.0, 0.3],
-                   [0.9, 1.1, 1.3, 0.7]])
-ADVANTAGES = np.array([[1.0, -1.0, 2.0, -2.0],
-                       [0.5, -0.5, 1.5, 1.5],
-                       [1.0, -1.0, -3.0, 0.7],
-                       [-0.4, 0.6, 0.9, -1.2]])
+RATIOS = np.array([[0.5, 0.5, 0.79, 0.81], [1.0, 1.0, 1.19, 1.21], [1.5, 1.5, 2.0, 0.3], [0.9, 1.1, 1.3, 0.7]])
+ADVANTAGES = np.array([[1.0, -1.0, 2.0, -2.0], [0.5, -0.5, 1.5, 1.5], [1.0, -1.0, -3.0, 0.7], [-0.4, 0.6, 0.9, -1.2]])
 # New values move from the rollout's by more than EPS in some entries (the clipped value then counts where it is
 # the worse fit) and by less in others.
-OLD_VALUES = np.array([[0.0, 1.0, 2.0, -1.0],
-                       [0.5, 0.5, -0.5, 3.0],
-                       [1.0, 2.0, 0.0, 0.0],
-                       [4.0, -2.0, 1.0, 0.3]])
-VALUES = OLD_VALUES + np.array([[0.5, -0.5, 0.1, -0.1],
-                                [0.25, -0.3, 0.05, 1.0],
-                                [-0.8, 0.15, 0.6, -0.19],
-                                [0.21, 0.0, -0.4, 0.3]])
-RETURNS = np.array([[1.0, 0.0, 2.5, -2.0],
-                    [0.0, 1.5, -0.5, 5.0],
-                    [-1.0, 2.5, 1.0, -0.5],
-                    [3.0, -1.0, -0.2, 0.1]])
+OLD_VALUES = np.array([[0.0, 1.0, 2.0, -1.0], [0.5, 0.5, -0.5, 3.0], [1.0, 2.0, 0.0, 0.0], [4.0, -2.0, 1.0, 0.3]])
+VALUES = OLD_VALUES + np.array(
+    [[0.5, -0.5, 0.1, -0.1], [0.25, -0.3, 0.05, 1.0], [-0.8, 0.15, 0.6, -0.19], [0.21, 0.0, -0.4, 0.3]]
+)
+RETURNS = np.array([[1.0, 0.0, 2.5, -2.0], [0.0, 1.5, -0.5, 5.0], [-1.0, 2.5, 1.0, -0.5], [3.0, -1.0, -0.2, 0.1]])
 
 
 class FakeNet:
@@ -68,9 +55,17 @@ def _loss_inputs(values, old_values):
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     params = {"mean": f32(mean), "log_std": f32(log_std), "values": f32(values)}
     zeros = jnp.zeros((4, 4), jnp.float32)
-    batch = Transition(obs=zeros, resets=zeros.astype(bool), action=f32(action), log_prob=f32(old_log_prob),
-                       value=f32(old_values), reward=zeros, done=zeros.astype(bool), truncated=zeros.astype(bool),
-                       final_value=zeros)
+    batch = Transition(
+        obs=zeros,
+        resets=zeros.astype(bool),
+        action=f32(action),
+        log_prob=f32(old_log_prob),
+        value=f32(old_values),
+        reward=zeros,
+        done=zeros.astype(bool),
+        truncated=zeros.astype(bool),
+        final_value=zeros,
+    )
     return params, batch, log_std
 
 
@@ -95,8 +90,16 @@ def test_ppo_loss_matches_the_clipped_objective(hparams, clip_value, norm_value)
     params, batch, log_std = _loss_inputs(VALUES, raw_old_values)
 
     loss, aux = jax.jit(ppo_loss, static_argnums=(0, 7))(
-        FakeNet(), params, None, batch, jnp.asarray(ADVANTAGES, jnp.float32), jnp.asarray(raw_returns, jnp.float32),
-        hparams, clip_value, stats)
+        FakeNet(),
+        params,
+        None,
+        batch,
+        jnp.asarray(ADVANTAGES, jnp.float32),
+        jnp.asarray(raw_returns, jnp.float32),
+        hparams,
+        clip_value,
+        stats,
+    )
 
     unclipped = RATIOS * ADVANTAGES
     clipped = np.clip(RATIOS, 1 - EPS, 1 + EPS) * ADVANTAGES
@@ -111,7 +114,9 @@ def test_ppo_loss_matches_the_clipped_objective(hparams, clip_value, norm_value)
     vf = 0.5 * np.mean(sq)
     entropy = np.mean(np.sum(0.5 * np.log(2 * np.pi * np.e) + log_std, axis=-1))
     expected = {
-        "pg_loss": pg, "vf_loss": vf, "entropy": entropy,
+        "pg_loss": pg,
+        "vf_loss": vf,
+        "entropy": entropy,
         "approx_kl": np.mean(RATIOS - 1 - np.log(RATIOS)),
         "clip_frac": np.mean(np.abs(RATIOS - 1) > EPS),
     }
@@ -205,8 +210,13 @@ def reference_social_force(pos, vel, goal, radius, v_pref, a, b, ki, dt, visible
 def _scene(seed, n=8):
     rng = np.random.default_rng(seed)
     pos = rng.uniform(-2.5, 2.5, (n, 2))  # a dense crowd: some pairs overlap, some are metres apart
-    return dict(pos=pos, vel=rng.uniform(-1.0, 1.0, (n, 2)), goal=rng.uniform(-6.0, 6.0, (n, 2)),
-                radius=rng.uniform(0.3, 0.5, n), v_pref=rng.uniform(0.5, 1.5, n))
+    return dict(
+        pos=pos,
+        vel=rng.uniform(-1.0, 1.0, (n, 2)),
+        goal=rng.uniform(-6.0, 6.0, (n, 2)),
+        radius=rng.uniform(0.3, 0.5, n),
+        v_pref=rng.uniform(0.5, 1.5, n),
+    )
 
 
 SF_STEP = jax.jit(social_force.step)
@@ -218,8 +228,9 @@ def test_social_force_step_matches_the_reference_rule(seed, a, b, ki):
     s = _scene(seed)
     dt = 0.25
     expected = reference_social_force(s["pos"], s["vel"], s["goal"], s["radius"], s["v_pref"], a, b, ki, dt)
-    got = SF_STEP(*(jnp.asarray(s[k], jnp.float32) for k in ("pos", "vel", "goal", "radius", "v_pref")),
-                  a=a, b=b, ki=ki, dt=dt)
+    got = SF_STEP(
+        *(jnp.asarray(s[k], jnp.float32) for k in ("pos", "vel", "goal", "radius", "v_pref")), a=a, b=b, ki=ki, dt=dt
+    )
     np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-5, atol=1e-5)
     # the scene exercises both sides of the speed cap
     speeds = np.linalg.norm(expected, axis=-1)
@@ -229,10 +240,17 @@ def test_social_force_step_matches_the_reference_rule(seed, a, b, ki):
 def test_social_force_neighbor_mask_hides_agents_from_the_push():
     s = _scene(3)
     visible = np.array([True, False, True, True, False, True, True, True])
-    expected = reference_social_force(s["pos"], s["vel"], s["goal"], s["radius"], s["v_pref"], 2.0, 1.0, 1.0, 0.25,
-                                      visible)
-    got = SF_STEP(*(jnp.asarray(s[k], jnp.float32) for k in ("pos", "vel", "goal", "radius", "v_pref")),
-                  a=2.0, b=1.0, ki=1.0, dt=0.25, neighbor_mask=jnp.asarray(visible))
+    expected = reference_social_force(
+        s["pos"], s["vel"], s["goal"], s["radius"], s["v_pref"], 2.0, 1.0, 1.0, 0.25, visible
+    )
+    got = SF_STEP(
+        *(jnp.asarray(s[k], jnp.float32) for k in ("pos", "vel", "goal", "radius", "v_pref")),
+        a=2.0,
+        b=1.0,
+        ki=1.0,
+        dt=0.25,
+        neighbor_mask=jnp.asarray(visible),
+    )
     np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-5, atol=1e-5)
 
 
@@ -243,8 +261,9 @@ def test_social_force_is_finite_where_the_reference_divides_by_zero():
     goal = np.array([[5.0, 0.0], [0.0, 5.0], [1.0, 0.0]])  # agent 2 is on its goal
     vel = np.array([[0.2, 0.0], [0.0, 0.2], [0.1, 0.1]])
     radius, v_pref = np.full(3, 0.3), np.full(3, 1.0)
-    got = np.asarray(SF_STEP(*(jnp.asarray(x, jnp.float32) for x in (pos, vel, goal, radius, v_pref)),
-                             a=2.0, b=1.0, ki=1.0, dt=0.25))
+    got = np.asarray(
+        SF_STEP(*(jnp.asarray(x, jnp.float32) for x in (pos, vel, goal, radius, v_pref)), a=2.0, b=1.0, ki=1.0, dt=0.25)
+    )
     assert np.all(np.isfinite(got))
     # agent 2: no pull, pushed away (+x) by agents 0 and 1 at distance 1
     push = 2 * 2.0 * np.exp(0.6 - 1.0) * np.array([1.0, 0.0])
@@ -279,10 +298,13 @@ def test_train_equals_one_chunk_of_all_its_updates():
         else:
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
     initial = t.init(key, hp).params
-    moved = max(float(jnp.abs(x - y).max()) for x, y in zip(jax.tree_util.tree_leaves(final.params),
-                                                              jax.tree_util.tree_leaves(initial)))
+    moved = max(
+        float(jnp.abs(x - y).max())
+        for x, y in zip(jax.tree_util.tree_leaves(final.params), jax.tree_util.tree_leaves(initial))
+    )
     assert moved > 1e-4  # training moved the parameters, so the comparison means something
     for name in METRIC_NAMES:  # a chunk reports sums of episode counts and means of the rest
         reduce = np.sum if name in SUMMED_METRICS else np.mean
-        np.testing.assert_allclose(float(chunk_metrics[name]), reduce(np.asarray(per_update[name])), rtol=1e-6,
-                                   atol=1e-7, err_msg=name)
+        np.testing.assert_allclose(
+            float(chunk_metrics[name]), reduce(np.asarray(per_update[name])), rtol=1e-6, atol=1e-7, err_msg=name
+        )

@@ -20,8 +20,18 @@ RAYS = 16
 def test_learned_policy_reads_the_env_scan():
     """make_network_for builds the scan branch from env.lidar_rays (scaled by env.sensor_range) and the policy acts
     on the env's own observations; its actions depend on the scan."""
-    config = TrainConfig.from_dict({"env": {"scenario": "corridor", "lidar_rays": RAYS, "sensor_range": 4.0,
-                                            "num_humans": 3, "human_policy": "social_force", "predictor": "none"}})
+    config = TrainConfig.from_dict(
+        {
+            "env": {
+                "scenario": "corridor",
+                "lidar_rays": RAYS,
+                "sensor_range": 4.0,
+                "num_humans": 3,
+                "human_policy": "social_force",
+                "predictor": "none",
+            }
+        }
+    )
     net = make_network_for(config)
     assert net.lidar_rays == RAYS and net.lidar_range == 4.0
     assert make_network_for(TrainConfig.from_dict({"env": {"scenario": "corridor"}})).lidar_rays == 0
@@ -60,13 +70,20 @@ def scene(robot, goal, polygons, num_humans=2, humans=None):
     rel = np.zeros((num_humans, 2), np.float32)
     mask = np.zeros(num_humans, bool)
     if humans is not None:
-        rel[:len(humans)] = np.asarray(humans, np.float32) - robot
-        mask[:len(humans)] = True
+        rel[: len(humans)] = np.asarray(humans, np.float32) - robot
+        mask[: len(humans)] = True
     # obstacles padded to 3 slots (one program for every scene with a map), or none at all (M = 0)
     obstacles = obstacles_lib.from_polygons(polygons, num_slots=3 if polygons else 0, max_vertices=4)
-    obs = Obs(robot_node=jnp.array([*robot, 0.3, *goal, 1.0, np.pi / 2], jnp.float32), robot_vel=jnp.zeros(2),
-              humans=jnp.asarray(rel), human_mask=jnp.asarray(mask), human_vel=jnp.zeros((num_humans, 2)),
-              human_radius=jnp.where(jnp.asarray(mask), 0.3, 0.0), lidar=jnp.zeros((0,)), obstacles=obstacles)
+    obs = Obs(
+        robot_node=jnp.array([*robot, 0.3, *goal, 1.0, np.pi / 2], jnp.float32),
+        robot_vel=jnp.zeros(2),
+        humans=jnp.asarray(rel),
+        human_mask=jnp.asarray(mask),
+        human_vel=jnp.zeros((num_humans, 2)),
+        human_radius=jnp.where(jnp.asarray(mask), 0.3, 0.0),
+        lidar=jnp.zeros((0,)),
+        obstacles=obstacles,
+    )
     return jax.tree_util.tree_map(lambda x: x[None], obs)
 
 

@@ -49,7 +49,7 @@ def random_obs(key, batch_shape, num_humans, dim, num_visible=None, lidar_rays=0
     )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def built(name, size, dim, num_humans=N, lidar_rays=0):
     net = make_network(name, size, obs_human_dim=dim, num_humans=num_humans, lidar_rays=lidar_rays)
     # an "rbg" key compiles the random initialisers faster than threefry; `PRNGKey` keys are tested below. Jitted:
@@ -104,13 +104,32 @@ HEADS = 2 * 2 * linear(256, 256) + linear(256, 1) + linear(256, 2) + 2
 # `rl/networks/selfAttn_srnn_temp_node.py` with 12 features per human (positions + 5 predicted steps): robot
 # embedding; human embedding, q/k/v and 8-head self-attention over humans, its output layer; robot-human attention
 # (q, k); the node GRU's two input embeddings, the GRU and its output layer.
-HH_ATTN_REFERENCE = (linear(9, 256) + linear(12, 128) + linear(128, 512) + 3 * linear(512, 512)
-                     + linear(512, 3 * 512) + linear(512, 512) + linear(512, 256) + 2 * linear(256, 64)
-                     + 2 * linear(256, 64) + gru(128, 128) + linear(128, 256) + HEADS)
+HH_ATTN_REFERENCE = (
+    linear(9, 256)
+    + linear(12, 128)
+    + linear(128, 512)
+    + 3 * linear(512, 512)
+    + linear(512, 3 * 512)
+    + linear(512, 512)
+    + linear(512, 256)
+    + 2 * linear(256, 64)
+    + 2 * linear(256, 64)
+    + gru(128, 128)
+    + linear(128, 256)
+    + HEADS
+)
 # `rl/networks/srnn_model.py` with 2 features per human: robot node and its encoder; temporal and spatial edge
 # embeddings and GRUs; attention (q, k); the node RNN's input layer, GRU and output layer.
-DSRNN_REFERENCE = (linear(7, 3) + linear(3, 64) + 2 * (linear(2, 64) + gru(64, 256)) + 2 * linear(256, 64)
-                   + linear(512, 64) + gru(128, 128) + linear(128, 256) + HEADS)
+DSRNN_REFERENCE = (
+    linear(7, 3)
+    + linear(3, 64)
+    + 2 * (linear(2, 64) + gru(64, 256))
+    + 2 * linear(256, 64)
+    + linear(512, 64)
+    + gru(128, 128)
+    + linear(128, 256)
+    + HEADS
+)
 
 
 def test_param_counts_match_reference():
@@ -275,8 +294,10 @@ def test_dsrnn_ignores_predictions():
     net, params, step = built("dsrnn", "small", 12)
     obs = random_obs(jax.random.PRNGKey(6), (B,), N, 12)
     other = obs.replace(humans=obs.humans.at[..., 2:].set(7.0))
-    assert_tree_equal(step(params, net.initialize_carry(B), obs, jnp.zeros(B, bool)),
-                      step(params, net.initialize_carry(B), other, jnp.zeros(B, bool)))
+    assert_tree_equal(
+        step(params, net.initialize_carry(B), obs, jnp.zeros(B, bool)),
+        step(params, net.initialize_carry(B), other, jnp.zeros(B, bool)),
+    )
 
 
 # -------------------------------------------------------------------------------------------------- recurrence

@@ -79,8 +79,13 @@ def _execute(path, tmp_path):
         _poll_in_short_steps(client.kc.shell_channel)
         _poll_in_short_steps(client.kc.iopub_channel)
 
-    client = NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3", on_notebook_start=short_polls,
-                            resources={"metadata": {"path": str(NOTEBOOK_DIR)}})
+    client = NotebookClient(
+        nb,
+        timeout=CELL_TIMEOUT_S,
+        kernel_name="python3",
+        on_notebook_start=short_polls,
+        resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
+    )
     start = time.perf_counter()
     client.execute(env=env)
     elapsed = time.perf_counter() - start

@@ -51,8 +51,15 @@ def test_open_space_env_has_no_obstacle_slots_and_no_scan():
 
 def _wall_env(**extra):
     """The robot drives up the y axis into a wall across x = [-3, 3] at y = -4 (no humans)."""
-    return CrowdNavEnv(dict(num_humans=0, predictor="none", scenario="frontal_approach",
-                            obstacles=[[[3.0, -4.0], [-3.0, -4.0]]], **extra))
+    return CrowdNavEnv(
+        dict(
+            num_humans=0,
+            predictor="none",
+            scenario="frontal_approach",
+            obstacles=[[[3.0, -4.0], [-3.0, -4.0]]],
+            **extra,
+        )
+    )
 
 
 def test_driving_into_a_wall_is_an_obstacle_collision():
@@ -93,8 +100,9 @@ def test_occlusion_hides_a_human_behind_a_wall():
     from helpers import hand_state
 
     for occlusion, seen in ((False, 1), (True, 0)):
-        env = CrowdNavEnv(dict(num_humans=1, predictor="none", occlusion=occlusion,
-                               obstacles=[[[-2.0, 1.0], [2.0, 1.0]]]))
+        env = CrowdNavEnv(
+            dict(num_humans=1, predictor="none", occlusion=occlusion, obstacles=[[[-2.0, 1.0], [2.0, 1.0]]])
+        )
         state = hand_state(robot_pos=[0.0, 0.0], robot_goal=[0.0, 5.0], human_pos=[[0.0, 2.5]])
         state = state.replace(obstacles=obstacles_lib.from_polygons([[[-2.0, 1.0], [2.0, 1.0]]]))
         obs = env._observe(state, env.default_params, None, env.visible(state, env.default_params))
@@ -106,22 +114,28 @@ def test_mix_with_obstacle_scenarios_draws_both_kinds():
     obs, state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(3), 64))
     with_walls = np.asarray(state.obstacles.num_vertices).sum(-1) > 0
     from tgrf_jax.config import SCENARIOS
+
     door = np.asarray(state.scenario) == SCENARIOS.index("doorway")
     assert 0 < door.sum() < 64 and np.array_equal(with_walls, door)
 
 
-@pytest.mark.parametrize("env, error", [
-    (dict(obstacles=[[[0, 0], [1, 1], [1, 0]]]), r"env.obstacles\[0\] = .* is clockwise"),
-    (dict(obstacles=[[[0, 0]]]), r"env.obstacles\[0\] = .* has 1 vertices"),
-    (dict(obstacles=[[[0, 0], [float("nan"), 1]]]), r"env.obstacles\[0\] = .* has non-finite coordinates"),
-    (dict(obstacles=[[[0, 0], [2, 0], [0, 2], [2, 2]]]), r"env.obstacles\[0\] = .* intersects itself"),
-    (dict(lidar_rays=100000), r"env.lidar_rays = 100000 is out of range"),
-    (dict(lidar_rays=-1), r"env.lidar_rays = -1 is out of range"),
-    (dict(scenario="mix", mix_scenarios=["corridor", "corridor"]), r"env.mix_scenarios"),
-    (dict(scenario="mix", mix_scenarios=["hallway"]), r"env.mix_scenarios\[0\] = 'hallway' is not a scenario"),
-    (dict(scenario="mix", mix_scenarios=["corridor", "doorway"], scenario_weights=[1, 1, 1]),
-     r"env.scenario_weights has 3 value\(s\); allowed: 2"),
-])
+@pytest.mark.parametrize(
+    "env, error",
+    [
+        (dict(obstacles=[[[0, 0], [1, 1], [1, 0]]]), r"env.obstacles\[0\] = .* is clockwise"),
+        (dict(obstacles=[[[0, 0]]]), r"env.obstacles\[0\] = .* has 1 vertices"),
+        (dict(obstacles=[[[0, 0], [float("nan"), 1]]]), r"env.obstacles\[0\] = .* has non-finite coordinates"),
+        (dict(obstacles=[[[0, 0], [2, 0], [0, 2], [2, 2]]]), r"env.obstacles\[0\] = .* intersects itself"),
+        (dict(lidar_rays=100000), r"env.lidar_rays = 100000 is out of range"),
+        (dict(lidar_rays=-1), r"env.lidar_rays = -1 is out of range"),
+        (dict(scenario="mix", mix_scenarios=["corridor", "corridor"]), r"env.mix_scenarios"),
+        (dict(scenario="mix", mix_scenarios=["hallway"]), r"env.mix_scenarios\[0\] = 'hallway' is not a scenario"),
+        (
+            dict(scenario="mix", mix_scenarios=["corridor", "doorway"], scenario_weights=[1, 1, 1]),
+            r"env.scenario_weights has 3 value\(s\); allowed: 2",
+        ),
+    ],
+)
 def test_bad_obstacle_settings_are_config_errors(env, error):
     with pytest.raises(ConfigError, match=error):
         EnvConfig(**env)

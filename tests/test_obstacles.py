@@ -27,8 +27,16 @@ sf_step = jax.jit(social_force.step)
 
 
 def scan(origin, heading, obstacles, discs=NO_DISCS, num_rays=8, max_range=100.0):
-    return np.asarray(lidar(jnp.asarray(origin, jnp.float32), jnp.float32(heading), obstacles, *discs,
-                                    num_rays=num_rays, max_range=max_range))
+    return np.asarray(
+        lidar(
+            jnp.asarray(origin, jnp.float32),
+            jnp.float32(heading),
+            obstacles,
+            *discs,
+            num_rays=num_rays,
+            max_range=max_range,
+        )
+    )
 
 
 def discs(*specs, mask=None):
@@ -138,8 +146,9 @@ def test_inside_clearance_and_distance_on_a_non_convex_polygon():
     ell = ob.from_polygons([L_SHAPE])
     points = jnp.array([[0.5, 0.5], [1.5, 0.5], [0.5, 1.5], [1.5, 1.5], [1.2, 1.1], [2.5, 2.5], [0.9, 1.8]])
     np.testing.assert_array_equal(inside(points, ell), [True, True, True, False, False, False, True])
-    np.testing.assert_allclose(clearance(points, ell),
-                               [-0.5, -0.5, -0.5, 0.5, 0.1, np.hypot(0.5, 1.5), -0.1], atol=1e-6)
+    np.testing.assert_allclose(
+        clearance(points, ell), [-0.5, -0.5, -0.5, 0.5, 0.1, np.hypot(0.5, 1.5), -0.1], atol=1e-6
+    )
     # Diagonally off the convex corner (2, 0) the corner itself is the nearest point.
     np.testing.assert_allclose(distance(jnp.array([[2.3, -0.4]]), ell), [0.5], atol=1e-6)
 
@@ -168,14 +177,16 @@ def test_unused_slots_and_vertices_are_ignored():
     points = jnp.array([[0.2, 0.2], [2.0, 2.0], [-1.0, 0.5], [5.0, 8.0]])
     for fn in (distance, inside, clearance):
         np.testing.assert_array_equal(fn(points, messy), fn(points, clean))
-    np.testing.assert_array_equal(swept(points, points[::-1], messy),
-                                  swept(points, points[::-1], clean))
+    np.testing.assert_array_equal(swept(points, points[::-1], messy), swept(points, points[::-1], clean))
     targets = jnp.array([[3.0, -2.0], [0.5, 0.2], [-1.0, 0.5]])  # through slot 2's wall; into the triangle; clear
     np.testing.assert_array_equal(sight(jnp.array([3.0, 3.0]), targets, messy), [True, False, True])
     np.testing.assert_array_equal(sight(jnp.array([3.0, 3.0]), targets, clean), [True, False, True])
     np.testing.assert_array_equal(scan([3.0, 3.0], 0.2, messy, num_rays=16), scan([3.0, 3.0], 0.2, clean, num_rays=16))
-    np.testing.assert_allclose(wall_force(points, jnp.full(4, 0.3), messy, a=2.0, b=0.5),
-                               wall_force(points, jnp.full(4, 0.3), clean, a=2.0, b=0.5), rtol=1e-6)
+    np.testing.assert_allclose(
+        wall_force(points, jnp.full(4, 0.3), messy, a=2.0, b=0.5),
+        wall_force(points, jnp.full(4, 0.3), clean, a=2.0, b=0.5),
+        rtol=1e-6,
+    )
     assert int(ob.edges(messy)[2].sum()) == 3
 
 
@@ -186,8 +197,9 @@ def test_no_slots_give_the_obstacle_free_answer():
     assert not inside(points, none).any() and sight(points[0], points, none).all()
     assert ob.edges(none)[0].shape == (0, 2)
     np.testing.assert_array_equal(wall_force(points, jnp.ones(2), none, a=2.0, b=0.5), np.zeros((2, 2)))
-    np.testing.assert_array_equal(scan([0.0, 0.0], 0.0, none, discs(([2.0, 0.0], 0.5)), num_rays=4, max_range=9.0),
-                                  [1.5, 9.0, 9.0, 9.0])
+    np.testing.assert_array_equal(
+        scan([0.0, 0.0], 0.0, none, discs(([2.0, 0.0], 0.5)), num_rays=4, max_range=9.0), [1.5, 9.0, 9.0, 9.0]
+    )
 
 
 def test_jit_vmap_and_finite_on_degenerate_input():
@@ -203,13 +215,31 @@ def test_jit_vmap_and_finite_on_degenerate_input():
     def everything(obstacles):
         origin = points[0]
         return (
-            ob.distance_to_obstacles(points, obstacles), ob.clearance(points, obstacles),
-            ob.swept_distance(points, points, obstacles), ob.swept_distance(points, points[::-1], obstacles),
+            ob.distance_to_obstacles(points, obstacles),
+            ob.clearance(points, obstacles),
+            ob.swept_distance(points, points, obstacles),
+            ob.swept_distance(points, points[::-1], obstacles),
             ob.line_of_sight(origin, points, obstacles).astype(jnp.float32),
-            ob.lidar_scan(origin, jnp.float32(0.0), obstacles, points, jnp.zeros(5), jnp.ones(5, bool),
-                          num_rays=16, max_range=10.0),
-            ob.lidar_scan(points[3], jnp.float32(0.0), obstacles, points[:0], jnp.zeros(0), jnp.zeros(0, bool),
-                          num_rays=16, max_range=10.0),
+            ob.lidar_scan(
+                origin,
+                jnp.float32(0.0),
+                obstacles,
+                points,
+                jnp.zeros(5),
+                jnp.ones(5, bool),
+                num_rays=16,
+                max_range=10.0,
+            ),
+            ob.lidar_scan(
+                points[3],
+                jnp.float32(0.0),
+                obstacles,
+                points[:0],
+                jnp.zeros(0),
+                jnp.zeros(0, bool),
+                num_rays=16,
+                max_range=10.0,
+            ),
             ob.wall_force(points, jnp.full(5, 0.3), obstacles, a=2.0, b=0.5),
         )
 
@@ -223,24 +253,27 @@ def test_jit_vmap_and_finite_on_degenerate_input():
 # ---------------------------------------------------------------------------------------------- validation
 
 
-@pytest.mark.parametrize("polygon, says", [
-    ([(0.0, 0.0)], "2 (a wall segment)"),
-    ([], "2 (a wall segment)"),
-    ([(0.0, 0.0), (1.0, float("nan"))], "finite"),
-    ([(0.0, 0.0), (float("inf"), 1.0)], "finite"),
-    ([(0.0, 0.0), ("a", 1.0)], "pair of numbers"),
-    ([(0.0, 0.0), ("1.5", 1.0)], "pair of numbers"),
-    ([(0.0, 0.0), (1.0, 0.0, 2.0)], "pair of numbers"),
-    ([(0.0, 0.0), None], "pair of numbers"),
-    ([(0.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, 0.0)], "counter-clockwise"),
-    ([(0.0, 0.0), (0.0, 0.0)], "zero-length edge"),
-    ([(0.0, 0.0), (1.0, 0.0), (1.0, 0.0), (0.0, 1.0)], "zero-length edge"),
-    ([(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, 0.0)], "zero-length edge"),
-    ([(0.0, 0.0), (1.0, 1.0), (1.0, 0.0), (0.0, 1.0)], "intersects itself"),  # bow tie
-    ([(0.0, 0.0), (4.0, 0.0), (4.0, 2.0), (2.0, -1.0), (0.0, 2.0)], "intersects itself"),
-    ([(0.0, 0.0), (2.0, 0.0), (1.0, 0.0), (1.0, 1.0)], "intersects itself"),  # folds back on itself
-    ([(0.0, 0.0), (1.0, 0.0), (2.0, 0.0)], "intersects itself"),  # collinear: the closing edge folds back
-])
+@pytest.mark.parametrize(
+    "polygon, says",
+    [
+        ([(0.0, 0.0)], "2 (a wall segment)"),
+        ([], "2 (a wall segment)"),
+        ([(0.0, 0.0), (1.0, float("nan"))], "finite"),
+        ([(0.0, 0.0), (float("inf"), 1.0)], "finite"),
+        ([(0.0, 0.0), ("a", 1.0)], "pair of numbers"),
+        ([(0.0, 0.0), ("1.5", 1.0)], "pair of numbers"),
+        ([(0.0, 0.0), (1.0, 0.0, 2.0)], "pair of numbers"),
+        ([(0.0, 0.0), None], "pair of numbers"),
+        ([(0.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, 0.0)], "counter-clockwise"),
+        ([(0.0, 0.0), (0.0, 0.0)], "zero-length edge"),
+        ([(0.0, 0.0), (1.0, 0.0), (1.0, 0.0), (0.0, 1.0)], "zero-length edge"),
+        ([(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, 0.0)], "zero-length edge"),
+        ([(0.0, 0.0), (1.0, 1.0), (1.0, 0.0), (0.0, 1.0)], "intersects itself"),  # bow tie
+        ([(0.0, 0.0), (4.0, 0.0), (4.0, 2.0), (2.0, -1.0), (0.0, 2.0)], "intersects itself"),
+        ([(0.0, 0.0), (2.0, 0.0), (1.0, 0.0), (1.0, 1.0)], "intersects itself"),  # folds back on itself
+        ([(0.0, 0.0), (1.0, 0.0), (2.0, 0.0)], "intersects itself"),  # collinear: the closing edge folds back
+    ],
+)
 def test_check_polygons_names_the_field_and_the_polygon(polygon, says):
     good = [(0.0, 0.0), (1.0, 0.0)]
     with pytest.raises(ConfigError, match=r"env\.obstacles\[1\]") as err:
@@ -285,8 +318,7 @@ def test_wall_force_counts_a_corner_once_and_sums_over_polygons():
     np.testing.assert_allclose(force, 3.0 * np.exp((0.2 - d) / 0.4) * np.array([0.6, 0.8]) / d, rtol=1e-5)
     # Two walls either side at the same distance cancel; two on the same side add.
     two = ob.from_polygons([[(-1.0, -5.0), (-1.0, 5.0)], [(1.0, -5.0), (1.0, 5.0)]])
-    np.testing.assert_allclose(wall_force(jnp.zeros((1, 2)), jnp.array([0.3]), two, a=2.0, b=0.5), 0.0,
-                               atol=1e-6)
+    np.testing.assert_allclose(wall_force(jnp.zeros((1, 2)), jnp.array([0.3]), two, a=2.0, b=0.5), 0.0, atol=1e-6)
     same_side = ob.from_polygons([[(-1.0, -5.0), (-1.0, 5.0)], [(-1.0, 6.0), (-1.0, 7.0)]])
     single = ob.from_polygons([[(-1.0, -5.0), (-1.0, 5.0)]])
     f2 = wall_force(jnp.zeros((1, 2)), jnp.array([0.3]), same_side, a=2.0, b=0.5)[0, 0]
@@ -304,14 +336,26 @@ def test_wall_force_pushes_out_of_a_polygon():
 
 def _sf(obstacles, positions, velocities, step=sf_step):
     goals = jnp.array([[5.0, 0.0], [-5.0, 1.0], [0.0, 4.0]])
-    return step(positions, velocities, goals, jnp.array([0.3, 0.4, 0.35]), jnp.array([1.0, 1.2, 0.8]),
-                a=2.0, b=0.5, ki=1.0, dt=0.25, neighbor_mask=jnp.array([True, True, False]), obstacles=obstacles)
+    return step(
+        positions,
+        velocities,
+        goals,
+        jnp.array([0.3, 0.4, 0.35]),
+        jnp.array([1.0, 1.2, 0.8]),
+        a=2.0,
+        b=0.5,
+        ki=1.0,
+        dt=0.25,
+        neighbor_mask=jnp.array([True, True, False]),
+        obstacles=obstacles,
+    )
 
 
 def test_social_force_step_with_obstacles():
     positions = jnp.array([[0.0, 0.0], [1.0, 1.0], [-1.0, 2.0]])
     velocities = jnp.array([[0.5, 0.0], [-0.2, 0.1], [0.0, 0.3]])
     base = _sf(None, positions, velocities)
+
     # No obstacle slots: the very program of a step without obstacles, hence the same bits.
     def program(obstacles):
         return str(jax.make_jaxpr(lambda: _sf(obstacles, positions, velocities, step=social_force.step))())

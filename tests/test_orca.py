@@ -38,8 +38,9 @@ SIDES = (16.0, 10.0, 7.0, 5.0, 3.5, 2.5)
 
 
 def _stack(scenes):
-    return tuple(jnp.asarray(np.stack([getattr(s, f) for s in scenes])) for f in ("pos", "vel", "radius", "pref",
-                                                                                  "max_speed"))
+    return tuple(
+        jnp.asarray(np.stack([getattr(s, f) for s in scenes])) for f in ("pos", "vel", "radius", "pref", "max_speed")
+    )
 
 
 @functools.partial(jax.jit, static_argnames="block")
@@ -75,10 +76,14 @@ def fidelity_report(seed=0, per_side=40, block=None) -> dict:
     ref = np.stack([rvo2_step(s, **ENV_SETTINGS) for s in scenes])
     err = np.linalg.norm(out - ref, axis=-1)
     rep = error_summary(err, TOL)
-    rep.update(scenes=len(scenes), agents_per_scene=20, infeasible_share=float(infeasible.mean()),
-               frac_within_feasible=float(np.mean(err[~infeasible] <= TOL)),
-               frac_within_infeasible=float(np.mean(err[infeasible] <= TOL)),
-               scenes_with_infeasible=float(infeasible.any(axis=1).mean()))
+    rep.update(
+        scenes=len(scenes),
+        agents_per_scene=20,
+        infeasible_share=float(infeasible.mean()),
+        frac_within_feasible=float(np.mean(err[~infeasible] <= TOL)),
+        frac_within_infeasible=float(np.mean(err[infeasible] <= TOL)),
+        scenes_with_infeasible=float(infeasible.any(axis=1).mean()),
+    )
     return rep
 
 
@@ -98,11 +103,14 @@ def test_matches_rvo2_env_settings():
     assert rep["frac_within_feasible"] >= 0.999, rep
 
 
-@pytest.mark.parametrize("settings", [
-    dict(time_horizon=5.0, dt=0.25, neighbor_dist=2.5, max_neighbors=19),  # range pruning
-    dict(time_horizon=5.0, dt=0.25, neighbor_dist=10.0, max_neighbors=4),  # nearest-k selection
-    dict(time_horizon=1.5, dt=0.1, neighbor_dist=4.0, max_neighbors=7),  # both, other horizons
-])
+@pytest.mark.parametrize(
+    "settings",
+    [
+        dict(time_horizon=5.0, dt=0.25, neighbor_dist=2.5, max_neighbors=19),  # range pruning
+        dict(time_horizon=5.0, dt=0.25, neighbor_dist=10.0, max_neighbors=4),  # nearest-k selection
+        dict(time_horizon=1.5, dt=0.1, neighbor_dist=4.0, max_neighbors=7),  # both, other horizons
+    ],
+)
 def test_matches_rvo2_other_settings(settings):
     rng = np.random.default_rng(1)
     scenes = [random_scene(rng, 20, side) for side in (12.0, 7.0, 4.0) for _ in range(20)]
@@ -126,10 +134,20 @@ def test_bit_exact_without_fma():
         "jax.default_backend = lambda: 'gpu'; jax.clear_caches(); r = report();"
         "print('MAXERR', r['max'], r['infeasible_share'])"
     )
-    env = dict(os.environ, XLA_FLAGS="--xla_cpu_max_isa=AVX", JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
-    res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300,
-                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = dict(
+        os.environ,
+        XLA_FLAGS="--xla_cpu_max_isa=AVX",
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]),
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
     lines = [x for x in res.stdout.splitlines() if x.startswith("MAXERR")]
     assert len(lines) == 2, res.stdout + res.stderr
     for line in lines:
@@ -194,12 +212,14 @@ def test_rollout_statistics_match_rvo2():
         traj, vel = (np.asarray(x) for x in _rollout(pos, goal, radius, vmax))
         rtraj, rvel = _rvo2_rollout(pos, goal, radius, vmax)
         for key, (t, v) in (("jax", (traj, vel)), ("rvo2", (rtraj, rvel))):
-            stats[key].append(dict(
-                collisions=_collisions(t, body),
-                mean_speed=float(np.linalg.norm(v, axis=-1).mean()),
-                arrived=float(np.mean(np.linalg.norm(t[-1] - goal, axis=-1) < 0.5)),
-                max_speed_ratio=float((np.linalg.norm(v, axis=-1) / vmax).max()),
-            ))
+            stats[key].append(
+                dict(
+                    collisions=_collisions(t, body),
+                    mean_speed=float(np.linalg.norm(v, axis=-1).mean()),
+                    arrived=float(np.mean(np.linalg.norm(t[-1] - goal, axis=-1) < 0.5)),
+                    max_speed_ratio=float((np.linalg.norm(v, axis=-1) / vmax).max()),
+                )
+            )
     print("\nrollouts:", json.dumps(stats))
     agg = {k: {m: float(np.mean([s[m] for s in v])) for m in v[0]} for k, v in stats.items()}
     j, r = agg["jax"], agg["rvo2"]
@@ -246,8 +266,9 @@ def test_single_agent_and_all_masked():
     np.testing.assert_allclose(out, _clamped_pref(scene), atol=1e-6)
     out = _solve(scene, max_neighbors=0)
     np.testing.assert_allclose(out, _clamped_pref(scene), atol=1e-6)
-    assert orca.solve(jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros(0), jnp.zeros((0, 2)), jnp.zeros(0),
-                      **ENV_SETTINGS).shape == (0, 2)
+    assert orca.solve(
+        jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros(0), jnp.zeros((0, 2)), jnp.zeros(0), **ENV_SETTINGS
+    ).shape == (0, 2)
 
 
 def test_mask_equals_removing_agents():
@@ -299,8 +320,17 @@ def test_vmap_over_traced_time_horizon():
     horizons = np.array([1.0, 3.0, 5.0, 8.0], np.float32)
 
     def run(th, nd):
-        return orca.solve(scene.pos, scene.vel, scene.radius, scene.pref, scene.max_speed, time_horizon=th,
-                          dt=0.25, neighbor_dist=nd, max_neighbors=19)
+        return orca.solve(
+            scene.pos,
+            scene.vel,
+            scene.radius,
+            scene.pref,
+            scene.max_speed,
+            time_horizon=th,
+            dt=0.25,
+            neighbor_dist=nd,
+            max_neighbors=19,
+        )
 
     out = np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(horizons), jnp.full(4, 10.0)))
     for th, o in zip(horizons, out):

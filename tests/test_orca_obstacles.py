@@ -64,7 +64,7 @@ def _pressed_crowd(rng, n=20):
     return Scene(f(pos), f(vel), radius, pref_towards(f(pos), f(goal)), f(max_speed)), polys
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def cases(seed=0):
     """Every scene of the shared batch: a list of dicts (scene, obstacles, time_horizon_obst, kind)."""
     rng = np.random.default_rng(seed)
@@ -80,8 +80,11 @@ def cases(seed=0):
     scene = scene_near_obstacles(rng, polys)
     out += [dict(kind="horizon", scene=scene, obstacles=polys, th=th) for th in OTHER_HORIZONS]
     for _ in range(3):  # unused slots: num_vertices 0 (or 1, which RVO2 rejects) with junk vertices
-        out.append(dict(kind="unused", scene=scene_near_obstacles(rng, [box((0, 0), 1, 1)], near=0.0), obstacles=[],
-                        th=TH_OBST))
+        out.append(
+            dict(
+                kind="unused", scene=scene_near_obstacles(rng, [box((0, 0), 1, 1)], near=0.0), obstacles=[], th=TH_OBST
+            )
+        )
     for c in out:
         c["arrays"] = pack_obstacles(c["obstacles"], SLOTS, VERTICES)
         if c["kind"] == "unused":
@@ -91,8 +94,9 @@ def cases(seed=0):
 
 
 def _stack(scenes):
-    return tuple(jnp.asarray(np.stack([getattr(s, f) for s in scenes])) for f in ("pos", "vel", "radius", "pref",
-                                                                                  "max_speed"))
+    return tuple(
+        jnp.asarray(np.stack([getattr(s, f) for s in scenes])) for f in ("pos", "vel", "radius", "pref", "max_speed")
+    )
 
 
 @jax.jit
@@ -103,16 +107,19 @@ def _solve_batch(pos, vel, radius, pref, max_speed, vertices, num_vertices, th_o
     return jax.vmap(one)(pos, vel, radius, pref, max_speed, vertices, num_vertices, th_obst)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def batch_results(seed=0):
     """(velocities (B, N, 2), LP3 flags (B, N), RVO2's velocities (B, N, 2)) of :func:`cases`."""
     cs = cases(seed)
-    args = _stack([c["scene"] for c in cs]) + (jnp.asarray(np.stack([c["arrays"][0] for c in cs])),
-                                               jnp.asarray(np.stack([c["arrays"][1] for c in cs])),
-                                               jnp.asarray([c["th"] for c in cs], jnp.float32))
+    args = _stack([c["scene"] for c in cs]) + (
+        jnp.asarray(np.stack([c["arrays"][0] for c in cs])),
+        jnp.asarray(np.stack([c["arrays"][1] for c in cs])),
+        jnp.asarray([c["th"] for c in cs], jnp.float32),
+    )
     out, lp3 = (np.asarray(x) for x in _solve_batch(*args))
-    ref = np.stack([rvo2_step(c["scene"], **ENV_SETTINGS, obstacles=c["arrays"], time_horizon_obst=c["th"])
-                    for c in cs])
+    ref = np.stack(
+        [rvo2_step(c["scene"], **ENV_SETTINGS, obstacles=c["arrays"], time_horizon_obst=c["th"]) for c in cs]
+    )
     return out, lp3, ref
 
 
@@ -121,8 +128,10 @@ def _rvo2_lines(case):
     sim = make_sim(case["scene"], **ENV_SETTINGS, obstacles=case["arrays"], time_horizon_obst=case["th"])
     sim.doStep()
     n = len(case["scene"].radius)
-    lines = [np.array([sim.getAgentORCALine(i, k) for k in range(sim.getAgentNumORCALines(i))]).reshape(-1, 4)
-             for i in range(n)]
+    lines = [
+        np.array([sim.getAgentORCALine(i, k) for k in range(sim.getAgentNumORCALines(i))]).reshape(-1, 4)
+        for i in range(n)
+    ]
     n_obst = [sim.getAgentNumORCALines(i) - sim.getAgentNumAgentNeighbors(i) for i in range(n)]
     return lines, n_obst
 
@@ -134,9 +143,13 @@ def fidelity_report(seed=0) -> dict:
     err = np.linalg.norm(out - ref, axis=-1)
     parity = np.isin(kinds, OBSTACLE_KINDS + ("pressed",))
     rep = error_summary(err[parity], TOL)
-    rep.update(scenes=int(parity.sum()), agents_per_scene=int(err.shape[1]), infeasible_share=float(lp3[parity].mean()),
-               frac_within_infeasible=float(np.mean(err[parity][lp3[parity]] <= TOL)),
-               by_kind={k: error_summary(err[kinds == k], TOL) for k in OBSTACLE_KINDS + ("pressed",)})
+    rep.update(
+        scenes=int(parity.sum()),
+        agents_per_scene=int(err.shape[1]),
+        infeasible_share=float(lp3[parity].mean()),
+        frac_within_infeasible=float(np.mean(err[parity][lp3[parity]] <= TOL)),
+        by_kind={k: error_summary(err[kinds == k], TOL) for k in OBSTACLE_KINDS + ("pressed",)},
+    )
     return rep
 
 
@@ -160,14 +173,26 @@ def test_matches_rvo2_with_obstacles():
 def _max_error_without_fma(gpu_trace=False):
     """fidelity_report's largest error in a subprocess without FMA contraction (RVO2's plain x86-64 build has
     none); ``gpu_trace``: the solver as it is traced for a GPU (one block, no fusion barriers or conditionals)."""
-    code = ("import sys, jax; sys.path.insert(0, 'tests'); import test_orca_obstacles as t;"
-            + ("jax.default_backend = lambda: 'gpu';" if gpu_trace else "")
-            + "r = t.fidelity_report(); print('MAXERR', r['max'], r['infeasible_share'])")
+    code = (
+        "import sys, jax; sys.path.insert(0, 'tests'); import test_orca_obstacles as t;"
+        + ("jax.default_backend = lambda: 'gpu';" if gpu_trace else "")
+        + "r = t.fidelity_report(); print('MAXERR', r['max'], r['infeasible_share'])"
+    )
     flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_max_isa=AVX".strip()
-    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
-    res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300,
-                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = dict(
+        os.environ,
+        XLA_FLAGS=flags,
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]),
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
     lines = [x for x in res.stdout.splitlines() if x.startswith("MAXERR")]
     assert len(lines) == 1, res.stdout + res.stderr
     max_err, infeasible = map(float, lines[0].split()[1:])
@@ -196,8 +221,9 @@ def test_kd_tree_splits_edges_as_rvo2():
     vertices = jnp.asarray(np.stack([c["arrays"][0] for c in cs]))
     counts = jnp.asarray(np.stack([c["arrays"][1] for c in cs]))
     n_slots = orca._edge_capacity(SLOTS * VERTICES)
-    table = jax.jit(lambda v, n: orca._obstacle_table(jnp.moveaxis(v[..., 0], 0, -1), jnp.moveaxis(v[..., 1], 0, -1),
-                                                      n.T, n_slots))(vertices, counts)
+    table = jax.jit(
+        lambda v, n: orca._obstacle_table(jnp.moveaxis(v[..., 0], 0, -1), jnp.moveaxis(v[..., 1], 0, -1), n.T, n_slots)
+    )(vertices, counts)
     alive, ax, ay = (np.asarray(x) for x in (table.edges.alive, table.edges.ax, table.edges.ay))
     n_split = 0
     for s, c in enumerate(cs):
@@ -206,8 +232,12 @@ def test_kd_tree_splits_edges_as_rvo2():
         mine = np.stack([ax[alive[:, s], s], ay[alive[:, s], s]], -1)
         n_split += len(ref) - sum(len(p) for p in polygons(*c["arrays"]))
         assert len(mine) == len(ref), (s, c["kind"], len(mine), len(ref))
-        np.testing.assert_allclose(np.sort(mine.view(np.complex64).ravel()), np.sort(ref.view(np.complex64).ravel()),
-                                   atol=1e-5, err_msg=f"scene {s} ({c['kind']})")
+        np.testing.assert_allclose(
+            np.sort(mine.view(np.complex64).ravel()),
+            np.sort(ref.view(np.complex64).ravel()),
+            atol=1e-5,
+            err_msg=f"scene {s} ({c['kind']})",
+        )
     print(f"\nkd-tree splits in {len(cs)} layouts: {n_split}")
     assert n_split >= 20
 
@@ -224,8 +254,8 @@ def test_obstacle_lines_are_hard_constraints_in_lp3():
         for i in np.flatnonzero(lp3[s]):
             p, d = lines[i][:, :2], lines[i][:, 2:]
             depth = d[:, 0] * (p[:, 1] - out[s, i, 1]) - d[:, 1] * (p[:, 0] - out[s, i, 0])  # > 0: violated
-            worst_obst.append(depth[:n_obst[i]].max(initial=-np.inf))
-            relaxed += depth[n_obst[i]:].max(initial=-np.inf) > 1e-3
+            worst_obst.append(depth[: n_obst[i]].max(initial=-np.inf))
+            relaxed += depth[n_obst[i] :].max(initial=-np.inf) > 1e-3
     assert np.isfinite(worst_obst).sum() >= 20  # agents with obstacle lines among those
     assert max(worst_obst) <= 1e-4, max(worst_obst)
     assert relaxed >= 10, relaxed  # agent lines are what gives way
@@ -250,17 +280,20 @@ def test_traced_time_horizon_obst():
 def _lowered(**obstacles):
     z = jnp.zeros((5, 2))
     fn = jax.jit(lambda p: orca.solve(p, z, jnp.full(5, 0.3), z, jnp.ones(5), **ENV_SETTINGS, **obstacles))
-    return "\n".join(line.split(" loc(")[0] for line in fn.lower(z).as_text().splitlines()
-                     if not line.lstrip().startswith("#loc"))
+    return "\n".join(
+        line.split(" loc(")[0] for line in fn.lower(z).as_text().splitlines() if not line.lstrip().startswith("#loc")
+    )
 
 
 def test_no_obstacles_is_the_obstacle_free_program():
     plain = _lowered()
     assert _lowered(obstacles=None) == plain
-    assert _lowered(obstacles=(np.zeros((0, 4, 2), np.float32), np.zeros((0,), np.int32)),
-                    time_horizon_obst=5.0) == plain
-    assert _lowered(obstacles=(np.zeros((3, 4, 2), np.float32), np.zeros((3,), np.int32)),
-                    time_horizon_obst=5.0) != plain
+    assert (
+        _lowered(obstacles=(np.zeros((0, 4, 2), np.float32), np.zeros((0,), np.int32)), time_horizon_obst=5.0) == plain
+    )
+    assert (
+        _lowered(obstacles=(np.zeros((3, 4, 2), np.float32), np.zeros((3,), np.int32)), time_horizon_obst=5.0) != plain
+    )
 
 
 def test_unused_slots_equal_no_obstacles():
@@ -294,8 +327,9 @@ def test_jit_vmap_per_scene_obstacles_match_per_scene_calls():
     np.testing.assert_allclose(single, out[picks], atol=1e-2)
     # unbatched obstacles broadcast to every scene of a vmap
     case = cases()[picks[1]]
-    shared = jax.jit(jax.vmap(lambda *a: orca.solve(*a, **ENV_SETTINGS, obstacles=case["arrays"],
-                                                    time_horizon_obst=TH_OBST)))
+    shared = jax.jit(
+        jax.vmap(lambda *a: orca.solve(*a, **ENV_SETTINGS, obstacles=case["arrays"], time_horizon_obst=TH_OBST))
+    )
     scenes = [cases()[i]["scene"] for i in picks[:3]]
     got = np.asarray(shared(*_stack(scenes)))
     for s, g in zip(scenes, got):
@@ -313,12 +347,16 @@ def test_processed_obstacles_match_the_polygons():
 
     @jax.jit
     def solve(pos, vel, radius, pref, max_speed, tables, th_obst):
-        return jax.vmap(lambda p, v, r, pr, m, t, th: orca.solve_with_info(
-            p, v, r, pr, m, **ENV_SETTINGS, obstacles=t, time_horizon_obst=th))(pos, vel, radius, pref, max_speed,
-                                                                                  tables, th_obst)
+        return jax.vmap(
+            lambda p, v, r, pr, m, t, th: orca.solve_with_info(
+                p, v, r, pr, m, **ENV_SETTINGS, obstacles=t, time_horizon_obst=th
+            )
+        )(pos, vel, radius, pref, max_speed, tables, th_obst)
 
-    got, got_lp3 = (np.asarray(x) for x in solve(*_stack([c["scene"] for c in cs]), tables,
-                                                 jnp.asarray([c["th"] for c in cs], jnp.float32)))
+    got, got_lp3 = (
+        np.asarray(x)
+        for x in solve(*_stack([c["scene"] for c in cs]), tables, jnp.asarray([c["th"] for c in cs], jnp.float32))
+    )
     np.testing.assert_array_equal(got_lp3, lp3)
     np.testing.assert_allclose(got[~lp3], out[~lp3], atol=1e-5)
     np.testing.assert_allclose(got, out, atol=1e-2)
@@ -346,8 +384,13 @@ def test_obstacles_without_agent_neighbours_match_rvo2():
 def test_degenerate_geometry_is_finite():
     """Agents on a wall, on a vertex, inside a box; zero-length edges, a repeated vertex, a 1-vertex slot."""
     f = lambda x: np.asarray(x, np.float32)  # noqa: E731
-    polys = [wall((0, 0), (2, 0)), wall((3, 3), (3, 3)), box((5, 5), 0.5, 0.5),
-             [(-3, -3), (-2, -3), (-2, -3), (-3, -2)], [(7, 7)]]
+    polys = [
+        wall((0, 0), (2, 0)),
+        wall((3, 3), (3, 3)),
+        box((5, 5), 0.5, 0.5),
+        [(-3, -3), (-2, -3), (-2, -3), (-3, -2)],
+        [(7, 7)],
+    ]
     vertices, counts = pack_obstacles(polys, SLOTS, VERTICES)
     n = 20
     pos = np.zeros((n, 2))

@@ -41,8 +41,16 @@ def test_gae_truncation_bootstraps_from_final_obs_value():
     last = jnp.array([0.7, 0.7])
     adv, ret = compute_gae(rewards, values, dones, truncs, finals, last, gamma, lam)
     for b in range(2):
-        ref = _gae_reference(np.asarray(rewards[:, b]), np.asarray(values[:, b]), np.asarray(dones[:, b]),
-                             np.asarray(truncs[:, b]), np.asarray(finals[:, b]), float(last[b]), gamma, lam)
+        ref = _gae_reference(
+            np.asarray(rewards[:, b]),
+            np.asarray(values[:, b]),
+            np.asarray(dones[:, b]),
+            np.asarray(truncs[:, b]),
+            np.asarray(finals[:, b]),
+            float(last[b]),
+            gamma,
+            lam,
+        )
         np.testing.assert_allclose(np.asarray(adv[:, b]), ref, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(ret, adv + values, rtol=1e-6)
     # hand values at the episode end: truncated: 2 + 0.9 * 5 - 0.3; terminated: 2 - 0.3
@@ -96,8 +104,9 @@ def test_gru_carry_resets_at_episode_boundaries():
     def replay(params, carry0, obs, resets):
         _, pi, values = net.apply_sequence(params, carry0, obs, resets)
         tail = jax.tree_util.tree_map(lambda x: x[3:], obs)
-        _, pi_fresh, values_fresh = net.apply_sequence(params, net.initialize_carry(B), tail,
-                                                       jnp.zeros((T - 3, B), bool))
+        _, pi_fresh, values_fresh = net.apply_sequence(
+            params, net.initialize_carry(B), tail, jnp.zeros((T - 3, B), bool)
+        )
         return pi.mean(), values, pi_fresh.mean(), values_fresh
 
     means, values, means_fresh, values_fresh = replay(params, carry0, obs, resets)
@@ -110,8 +119,11 @@ def test_gru_carry_resets_at_episode_boundaries():
 def test_rollout_replay_matches_stored_log_probs_and_values():
     """The minibatch replay (stored carry at step 0 + stored resets) reproduces the rollout's own log-probs and
     values exactly, across episode boundaries (short time limit -> several truncations inside the rollout)."""
-    cfg = tiny_config(env={"num_humans": 2, "human_policy": "social_force", "time_limit": 2.0},
-                      network={"name": "hh_attn"}, ppo={"num_steps": 12})
+    cfg = tiny_config(
+        env={"num_humans": 2, "human_policy": "social_force", "time_limit": 2.0},
+        network={"name": "hh_attn"},
+        ppo={"num_steps": 12},
+    )
     t = make_train(cfg)
     tr = t.trainer
     state = t.init(jax.random.PRNGKey(3), t.default_hparams)
@@ -158,8 +170,11 @@ def test_gradient_microbatches_give_the_same_update():
     """Accumulating a minibatch's gradient over env slices is the same update, up to float rounding."""
     results = []
     for microbatch_envs in (0, 1):
-        cfg = tiny_config(env={"num_humans": 3, "predictor": "const_vel"}, network={"name": "hh_attn"},
-                          ppo={"microbatch_envs": microbatch_envs})
+        cfg = tiny_config(
+            env={"num_humans": 3, "predictor": "const_vel"},
+            network={"name": "hh_attn"},
+            ppo={"microbatch_envs": microbatch_envs},
+        )
         assert cfg.ppo.num_microbatches == {0: 1, 1: 4}[microbatch_envs]
         t = make_train(cfg)
         state, metrics = t.run_chunk(t.init(jax.random.PRNGKey(0), t.default_hparams), 2)
@@ -176,8 +191,14 @@ def test_gradient_microbatches_give_the_same_update():
 
 def test_microbatch_slices_are_the_fewest_equal_ones_within_the_limit():
     def slices(envs, minibatches, microbatch_envs):
-        return tiny_config(ppo={"num_envs": envs, "num_minibatches": minibatches, "total_steps": envs * 8,
-                                "microbatch_envs": microbatch_envs}).ppo.num_microbatches
+        return tiny_config(
+            ppo={
+                "num_envs": envs,
+                "num_minibatches": minibatches,
+                "total_steps": envs * 8,
+                "microbatch_envs": microbatch_envs,
+            }
+        ).ppo.num_microbatches
 
     assert slices(128, 4, 8) == 4  # 32 envs per minibatch -> 4 slices of 8
     assert slices(128, 4, 0) == 1
@@ -195,8 +216,9 @@ def test_train_is_vmappable_over_seeds_and_hparams():
     t = make_train(cfg)
     hp = t.default_hparams
     hps = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), hp)
-    hps = hps.replace(lr=jnp.array([1e-3, 3e-4]),
-                      env=hps.env.replace(reward=hps.env.reward.replace(h_disc=jnp.array([2.5, 1.0]))))
+    hps = hps.replace(
+        lr=jnp.array([1e-3, 3e-4]), env=hps.env.replace(reward=hps.env.reward.replace(h_disc=jnp.array([2.5, 1.0])))
+    )
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     states = jax.jit(jax.vmap(t.trainer.init))(keys, hps)
     states, metrics = jax.jit(jax.vmap(lambda s: t.trainer.run_updates(s, 2)))(states)
@@ -205,8 +227,12 @@ def test_train_is_vmappable_over_seeds_and_hparams():
     # each vmapped member equals its own unbatched run
     single = t.init(keys[1], jax.tree_util.tree_map(lambda x: x[1], hps))
     single, _ = t.run_chunk(single, 2)
-    np.testing.assert_allclose(jax.tree_util.tree_leaves(states.params)[0][1],
-                               jax.tree_util.tree_leaves(single.params)[0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        jax.tree_util.tree_leaves(states.params)[0][1],
+        jax.tree_util.tree_leaves(single.params)[0],
+        rtol=1e-5,
+        atol=1e-6,
+    )
 
 
 def test_learns_to_reach_goal_without_humans():
@@ -214,7 +240,8 @@ def test_learns_to_reach_goal_without_humans():
     (59k steps); the deterministic policy then reaches the goal in >= 70 % of 64 evaluation episodes. About 30 s on
     2 cores."""
     cfg = tiny_config(
-        ppo={"num_envs": 32, "num_steps": 32, "total_steps": 32 * 32 * 60, "update_epochs": 4, "lr": 1e-3})
+        ppo={"num_envs": 32, "num_steps": 32, "total_steps": 32 * 32 * 60, "update_epochs": 4, "lr": 1e-3}
+    )
     t = make_train(cfg)
     state = t.init(jax.random.PRNGKey(0), t.default_hparams)
     state, first = t.run_chunk(state, 2)
@@ -236,7 +263,8 @@ def test_learns_to_reach_goal_without_humans():
 def test_hh_attn_learns_to_reach_goal_without_humans():
     cfg = tiny_config(
         network={"name": "hh_attn", "size": "small"},
-        ppo={"num_envs": 32, "num_steps": 32, "total_steps": 32 * 32 * 40, "update_epochs": 4, "lr": 1e-3})
+        ppo={"num_envs": 32, "num_steps": 32, "total_steps": 32 * 32 * 40, "update_epochs": 4, "lr": 1e-3},
+    )
     t = make_train(cfg)
     state = t.init(jax.random.PRNGKey(0), t.default_hparams)
     state, _ = t.run_chunk(state, 40)

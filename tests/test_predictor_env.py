@@ -52,8 +52,9 @@ def test_history_is_reset_at_every_episode_start(env):
     model = gst_history.predictions(params.predictor, state.history)
     assert not np.asarray(model.out_mask).any()
     visible = sensing.visible_mask(state, params)
-    for a, b in zip(jax.tree_util.tree_leaves(obs),
-                    jax.tree_util.tree_leaves(sensing.observe(state, params, model.means, visible))):
+    for a, b in zip(
+        jax.tree_util.tree_leaves(obs), jax.tree_util.tree_leaves(sensing.observe(state, params, model.means, visible))
+    ):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     ended = 0
     for i in range(10):  # time_limit 1 s = 4 steps: two episode ends
@@ -66,8 +67,9 @@ def test_history_is_reset_at_every_episode_start(env):
             visible = np.asarray(h.visible[:, 4])
             np.testing.assert_allclose(np.asarray(h.positions[visible, 4]), np.asarray(new_state.humans.pos)[visible])
             # the terminal step's reward (r_pred included) comes from the episode that ended, not the next one
-            _, _, reward_no_reset, *_ = step_env(jax.random.split(jax.random.key(i + 1))[0], state, jnp.zeros(2),
-                                                 params)
+            _, _, reward_no_reset, *_ = step_env(
+                jax.random.split(jax.random.key(i + 1))[0], state, jnp.zeros(2), params
+            )
             np.testing.assert_allclose(float(reward), float(reward_no_reset))
         else:
             # frames shift by one and the new frame is appended
@@ -84,8 +86,10 @@ def test_prediction_slots_as_the_reference_places_them(env):
     times = jnp.arange(-4, 1, dtype=jnp.float32)[None, :, None] * 0.25
     robot = state.robot.replace(pos=jnp.zeros(2))
     humans = state.humans.replace(pos=jnp.array([[1.0, 0.5], [-2.0, 1.0], [0.5, -6.0]]))
-    hist = gst_history.History(positions=humans.pos[:, None] + times * vel[:, None],
-                               visible=jnp.ones((3, 5), bool).at[2].set(jnp.array([0, 0, 0, 1, 1], bool)))
+    hist = gst_history.History(
+        positions=humans.pos[:, None] + times * vel[:, None],
+        visible=jnp.ones((3, 5), bool).at[2].set(jnp.array([0, 0, 0, 1, 1], bool)),
+    )
     state = state.replace(robot=robot, humans=humans, history=hist)
     visible = np.array([True, True, False])  # human 2 is out of the 5 m range now
     hist = hist.replace(visible=hist.visible & jnp.asarray(visible)[:, None])
@@ -107,20 +111,23 @@ def test_prediction_slots_as_the_reference_places_them(env):
 
 
 def test_unpredicted_human_holds_its_position_and_never_counts_for_r_pred():
-    env = make_env(num_humans=1, human_policy="social_force", predictor="gst",
-                   reward={"scheme": "tgrf", "pred_radius": 1.2})
+    env = make_env(
+        num_humans=1, human_policy="social_force", predictor="gst", reward={"scheme": "tgrf", "pred_radius": 1.2}
+    )
     params = env.default_params.replace(predictor=constant_step_params((0.25, 0.0)))
     # a (practically) motionless human 1.0 m left of a robot that stays put
     state = hand_state([0.0, 0.0], [0.0, 8.0], [[-1.0, 0.0]], v_pref=1e-6)
-    seen = gst_history.History(positions=jnp.tile(jnp.array([[[-1.0, 0.0]]]), (1, 5, 1)),
-                               visible=jnp.ones((1, 5), bool))
+    seen = gst_history.History(
+        positions=jnp.tile(jnp.array([[[-1.0, 0.0]]]), (1, 5, 1)), visible=jnp.ones((1, 5), bool)
+    )
     unseen = seen.replace(visible=jnp.zeros((1, 5), bool))
     step = jax.jit(env.step_env)
     # predicted (seen in the last two frames): -1 + 0.25 k reaches within 1.2 m of the robot at k = 1
     obs, _, _, _, _, info = step(jax.random.key(0), state.replace(history=seen), jnp.zeros(2), params)
     np.testing.assert_allclose(float(info.reward_terms.pred), -10.0 / 2 ** (1 + 1))
-    np.testing.assert_allclose(np.asarray(obs.humans[0, 2:]).reshape(5, 2)[:, 0], -1.0 + 0.25 * np.arange(1, 6),
-                               atol=1e-4)
+    np.testing.assert_allclose(
+        np.asarray(obs.humans[0, 2:]).reshape(5, 2)[:, 0], -1.0 + 0.25 * np.arange(1, 6), atol=1e-4
+    )
     # seen only now: no prediction; its slots hold its current position (inside 1.2 m), but r_pred stays 0
     obs, _, _, _, _, info = step(jax.random.key(0), state.replace(history=unseen), jnp.zeros(2), params)
     assert float(info.reward_terms.pred) == 0.0
@@ -132,8 +139,11 @@ def test_r_pred_uses_the_post_step_robot_and_the_new_observation():
     params = env.default_params.replace(predictor=constant_step_params((0.25, 0.0)))
     # a motionless human at (-1.2, 0), predicted to come 0.25 m closer per step; the robot steps to (-0.25, 0)
     state = hand_state([0.0, 0.0], [-8.0, 0.0], [[-1.2, 0.0]], v_pref=1e-6)
-    state = state.replace(history=gst_history.History(positions=jnp.tile(jnp.array([[[-1.2, 0.0]]]), (1, 5, 1)),
-                                                      visible=jnp.ones((1, 5), bool)))
+    state = state.replace(
+        history=gst_history.History(
+            positions=jnp.tile(jnp.array([[[-1.2, 0.0]]]), (1, 5, 1)), visible=jnp.ones((1, 5), bool)
+        )
+    )
     _, _, _, term, _, info = jax.jit(env.step_env)(jax.random.key(0), state, jnp.array([-1.0, 0.0]), params)
     assert not bool(term)
     # post-step robot: first hit at k = 2 (0.45 m) -> -10 / 2^3; the pre-step robot would first be hit at k = 3
@@ -167,15 +177,30 @@ def test_jit_vmap_and_weights_swap_without_recompiling():
     assert not np.allclose(np.asarray(swapped[0].humans)[visible], np.asarray(batched[0].humans)[visible])
 
 
-@pytest.mark.parametrize("fn, positions, visible, message", [
-    ("predict", (3, 5, 2, 1), (3, 5), r"gst.predict: positions has shape \(3, 5, 2, 1\); expected \(humans, 5, 2\)"),
-    ("predict", (4, 3, 5, 2), (4, 3, 5), r"positions has shape \(4, 3, 5, 2\); expected \(humans, 5, 2\).*vmap"),
-    ("predict", (3, 5), (3, 5), r"positions has shape \(3, 5\); expected \(humans, 5, 2\)"),
-    ("predict", (3, 4, 2), (3, 4), r"positions has shape \(3, 4, 2\); expected \(humans, 5, 2\)"),
-    ("predict", (3, 5, 2), (3, 4), r"gst.predict: visible has shape \(3, 4\); expected \(3, 5\)"),
-    ("step_gaussians", (3, 5, 2, 1), (3, 5), (r"gst.step_gaussians: positions has shape \(3, 5, 2, 1\); "
-                                              r"expected \(humans, T, 2\)")),
-])
+@pytest.mark.parametrize(
+    "fn, positions, visible, message",
+    [
+        (
+            "predict",
+            (3, 5, 2, 1),
+            (3, 5),
+            r"gst.predict: positions has shape \(3, 5, 2, 1\); expected \(humans, 5, 2\)",
+        ),
+        ("predict", (4, 3, 5, 2), (4, 3, 5), r"positions has shape \(4, 3, 5, 2\); expected \(humans, 5, 2\).*vmap"),
+        ("predict", (3, 5), (3, 5), r"positions has shape \(3, 5\); expected \(humans, 5, 2\)"),
+        ("predict", (3, 4, 2), (3, 4), r"positions has shape \(3, 4, 2\); expected \(humans, 5, 2\)"),
+        ("predict", (3, 5, 2), (3, 4), r"gst.predict: visible has shape \(3, 4\); expected \(3, 5\)"),
+        (
+            "step_gaussians",
+            (3, 5, 2, 1),
+            (3, 5),
+            (
+                r"gst.step_gaussians: positions has shape \(3, 5, 2, 1\); "
+                r"expected \(humans, T, 2\)"
+            ),
+        ),
+    ],
+)
 def test_arrays_of_the_wrong_shape_are_named_with_the_shape_expected(fn, positions, visible, message):
     # what a user passes by hand: a batch of envs without vmap, a missing (x, y) axis, too few frames
     params = predictor.init_params(jax.random.key(0), num_humans=3)

@@ -28,8 +28,10 @@ def params(ref):
 
 @pytest.fixture(scope="module")
 def fns():
-    return (jax.jit(jax.vmap(predictor.predict, in_axes=(None, 0, 0))),
-            jax.jit(jax.vmap(predictor.step_gaussians, in_axes=(None, 0, 0))))
+    return (
+        jax.jit(jax.vmap(predictor.predict, in_axes=(None, 0, 0))),
+        jax.jit(jax.vmap(predictor.step_gaussians, in_axes=(None, 0, 0))),
+    )
 
 
 def test_state_dict_names_with_or_without_prefix(ref, params):

@@ -26,8 +26,12 @@ def synthetic(b=5, t=40, n=3, seed=0):
     visible[:, 12:15, 2] = False
     seg = np.zeros((b, t, n), np.int16)
     seg[:, 15:, 2] = 1  # re-entry: a new pedestrian
-    arrays = dict(robot_pos=np.zeros((b, t, 2), np.float32), human_pos=(start + vel * times).astype(np.float32),
-                  visible=visible, seg=seg)
+    arrays = dict(
+        robot_pos=np.zeros((b, t, 2), np.float32),
+        human_pos=(start + vel * times).astype(np.float32),
+        visible=visible,
+        seg=seg,
+    )
     return {"arrays": arrays, "config": {"crowd": "synthetic", "seed": seed}}
 
 
@@ -65,8 +69,12 @@ def test_nll_is_the_bivariate_gaussian_density():
     g = StepGaussians(mu=jnp.asarray(mu), sigma=jnp.asarray(sig), corr=jnp.asarray(corr), out_mask=jnp.ones(4, bool))
     pos = rng.normal(size=(4, 5, 2))
     target = pos[:, -1:] + np.cumsum(rng.normal(size=(4, 5, 2)) * 0.2, axis=1)
-    batch = data_lib.Batch(positions=jnp.asarray(pos), visible=jnp.ones((4, 5), bool), target=jnp.asarray(target),
-                           target_valid=jnp.ones((4, 5), bool))
+    batch = data_lib.Batch(
+        positions=jnp.asarray(pos),
+        visible=jnp.ones((4, 5), bool),
+        target=jnp.asarray(target),
+        target_valid=jnp.ones((4, 5), bool),
+    )
     nll, mask = train_lib.nll_terms(g, batch)
     disp = np.diff(np.concatenate([pos[:, -1:], target], 1), axis=1)
     for i, k in [(0, 0), (2, 3), (3, 4)]:
@@ -83,10 +91,15 @@ def test_ade_mean_loss_fits_means_by_distance_and_spreads_by_nll():
     batch = jax.vmap(lambda es: data_lib.make_window(data, es))(jnp.array([[0, 3], [1, 20], [2, 5]]))
     rng = np.random.default_rng(0)
     mu = jnp.asarray(rng.normal(size=(3, 3, 5, 2)) * 0.1, jnp.float32)
-    g = lambda sigma: StepGaussians(mu=mu, sigma=jnp.full((3, 3, 5, 2), sigma), corr=jnp.zeros((3, 3, 5)),  # noqa: E731
-                                    out_mask=jnp.ones((3, 3), bool))
+    g = lambda sigma: StepGaussians(
+        mu=mu,
+        sigma=jnp.full((3, 3, 5, 2), sigma),
+        corr=jnp.zeros((3, 3, 5)),  # noqa: E731
+        out_mask=jnp.ones((3, 3), bool),
+    )
     mean_grad = lambda sigma, mean_loss: np.asarray(  # noqa: E731
-        jax.grad(lambda m: train_lib.gaussians_loss(g(sigma).replace(mu=m), batch, mean_loss))(mu))
+        jax.grad(lambda m: train_lib.gaussians_loss(g(sigma).replace(mu=m), batch, mean_loss))(mu)
+    )
     # under "ade" the pull on the means does not depend on the predicted spread; under the NLL it does
     np.testing.assert_allclose(mean_grad(0.05, "ade"), mean_grad(1.0, "ade"), rtol=1e-6)
     assert np.abs(mean_grad(0.05, "ade")).max() > 0
@@ -96,8 +109,7 @@ def test_ade_mean_loss_fits_means_by_distance_and_spreads_by_nll():
     means = batch.positions[:, :, -1:] + np.cumsum(np.asarray(mu), axis=2)
     mask = np.asarray(batch.target_valid)
     ade = np.linalg.norm(means - np.asarray(batch.target), axis=-1)[mask].mean()
-    np.testing.assert_allclose(float(train_lib.gaussians_loss(g(1.0), batch, "ade")), float(nll_only) + ade,
-                               rtol=1e-5)
+    np.testing.assert_allclose(float(train_lib.gaussians_loss(g(1.0), batch, "ade")), float(nll_only) + ade, rtol=1e-5)
     with pytest.raises(ValueError, match="mean_loss = 'mse'.*ade, nll"):
         train_lib.TrainConfig(mean_loss="mse")
 
@@ -114,9 +126,11 @@ def test_ade_loss_shapes_the_network_by_position_error_only():
         out = {}
         for detach in (True, False):
             model = lambda q: jax.vmap(  # noqa: E731
-                lambda b: step_gaussians(q, b.positions, b.visible, detach_spreads=detach))(batch)
+                lambda b: step_gaussians(q, b.positions, b.visible, detach_spreads=detach)
+            )(batch)
             spread_loss = lambda q: train_lib.gaussians_loss(  # noqa: E731
-                model(q).replace(mu=jnp.zeros((3, 3, 5, 2))), batch, "nll")
+                model(q).replace(mu=jnp.zeros((3, 3, 5, 2))), batch, "nll"
+            )
             out[detach] = (model(p), jax.grad(spread_loss)(p))
         return out
 
@@ -165,8 +179,9 @@ def test_relative_change_resamples_whole_episodes():
 
 def test_training_resumes_bit_identically(tmp_path):
     dataset = synthetic()
-    config = train_lib.TrainConfig(updates=4, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2,
-                                   eval_windows=8, dropout=0.1)  # dropout: its keys must resume too
+    config = train_lib.TrainConfig(
+        updates=4, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2, eval_windows=8, dropout=0.1
+    )  # dropout: its keys must resume too
     full, meta = train_lib.train(config, dataset, tmp_path / "full", log=lambda s: None)
     assert meta["eval"]["humans"] > 0
     # stop after 2 updates, then resume the same run to 4 (the update count may grow between invocations)
@@ -209,14 +224,17 @@ def test_collector_is_deterministic_and_logs_only_what_the_robot_sees():
     assert np.all(np.diff(a["seg"].astype(int), axis=1) >= 0)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["train", "--dataset", "nowhere.npz", "--run-dir", "r"], "nowhere.npz.*does not exist"),
-    (["train", "--dataset", "d.npz", "--run-dir", "r", "--updates", "0"], "updates = 0 must be an integer >= 1"),
-    (["train", "--dataset", "d.npz", "--run-dir", "r", "--mean-loss", "mse"], "--mean-loss: invalid choice"),
-    (["train", "--dataset", "d.npz", "--run-dir", "r", "--dropout", "-0.1"], "dropout = -0.1 must be in"),
-    (["collect", "--envs", "2", "--out", "x.npz"], "num_envs = 2 must be an integer >= 5"),
-    (["eval", "--dataset", "d.npz", "--params", "nothing.npz"], "nothing.npz.*do not exist"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["train", "--dataset", "nowhere.npz", "--run-dir", "r"], "nowhere.npz.*does not exist"),
+        (["train", "--dataset", "d.npz", "--run-dir", "r", "--updates", "0"], "updates = 0 must be an integer >= 1"),
+        (["train", "--dataset", "d.npz", "--run-dir", "r", "--mean-loss", "mse"], "--mean-loss: invalid choice"),
+        (["train", "--dataset", "d.npz", "--run-dir", "r", "--dropout", "-0.1"], "dropout = -0.1 must be in"),
+        (["collect", "--envs", "2", "--out", "x.npz"], "num_envs = 2 must be an integer >= 5"),
+        (["eval", "--dataset", "d.npz", "--params", "nothing.npz"], "nothing.npz.*do not exist"),
+    ],
+)
 def test_cli_errors_name_the_option_or_path(argv, message, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_info:
@@ -241,14 +259,18 @@ def test_a_run_is_resumed_only_as_itself(tmp_path):
     from tgrf_jax.storage.lock import exclusive
 
     dataset = synthetic()
-    config = train_lib.TrainConfig(updates=4, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2,
-                                   eval_windows=8)
+    config = train_lib.TrainConfig(
+        updates=4, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2, eval_windows=8
+    )
     run = tmp_path / "run"
     full, _ = train_lib.train(config, dataset, run, log=lambda s: None)
     run_json = (run / "run.json").read_text()
     short = train_lib.TrainConfig(**{**dataclasses.asdict(config), "updates": 2})
-    with pytest.raises(train_lib.CheckpointError, match=r"--updates 2 is below the progress of .*run': its checkpoint "
-                                                        r"of update 4 would be labelled 2; .*--from-step N"):
+    with pytest.raises(
+        train_lib.CheckpointError,
+        match=r"--updates 2 is below the progress of .*run': its checkpoint "
+        r"of update 4 would be labelled 2; .*--from-step N",
+    ):
         train_lib.train(short, dataset, run, log=lambda s: None)
     # --from-step 2 goes back: the run trained to 2 again, labelled 2, the later checkpoint deleted
     two, meta = train_lib.train(short, dataset, run, log=lambda s: None, from_step=2)
@@ -269,16 +291,20 @@ def test_a_run_is_resumed_only_as_itself(tmp_path):
     train_run = tmp_path / "train_run"  # what tgrf-train leaves
     (train_run / "checkpoints").mkdir(parents=True)
     (train_run / "config.yaml").write_text("ppo: {}\n")
-    with pytest.raises(train_lib.CheckpointError, match=r"holds config.yaml but no run.json: it is not a "
-                                                        r"tgrf-predictor run directory"):
+    with pytest.raises(
+        train_lib.CheckpointError,
+        match=r"holds config.yaml but no run.json: it is not a "
+        r"tgrf-predictor run directory",
+    ):
         train_lib.train(config, dataset, train_run, log=lambda s: None)
     assert sorted(p.name for p in train_run.iterdir()) == ["checkpoints", "config.yaml"]
 
 
 def test_a_non_finite_loss_stops_training_and_keeps_the_checkpoints(tmp_path, monkeypatch):
     dataset = synthetic()
-    config = train_lib.TrainConfig(updates=6, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2,
-                                   eval_windows=8)
+    config = train_lib.TrainConfig(
+        updates=6, batch_size=4, log_every=2, checkpoint_every=2, decay_every=2, eval_windows=8
+    )
     real = train_lib.train_chunk
 
     def diverging(state, data, index, config, length):
@@ -286,8 +312,11 @@ def test_a_non_finite_loss_stops_training_and_keeps_the_checkpoints(tmp_path, mo
         return state, loss if int(state.step) < 4 else jnp.float32(np.nan)
 
     monkeypatch.setattr(train_lib, "train_chunk", diverging)
-    with pytest.raises(train_lib.TrainingError, match=r"the training loss is nan in the updates 3..4: .* the "
-                                                      r"checkpoints up to update 2 in .* are kept"):
+    with pytest.raises(
+        train_lib.TrainingError,
+        match=r"the training loss is nan in the updates 3..4: .* the "
+        r"checkpoints up to update 2 in .* are kept",
+    ):
         train_lib.train(config, dataset, tmp_path / "run", log=lambda s: None)
     assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir()) == ["2"]
 
@@ -300,9 +329,25 @@ def test_cli_from_step_continues_from_that_checkpoint(tmp_path, capsys):
 
     data_lib.save_dataset(tmp_path / "d.npz", synthetic())
     run = tmp_path / "run"
-    argv = ["train", "--dataset", str(tmp_path / "d.npz"), "--run-dir", str(run), "--updates", "4",
-            "--batch-size", "4", "--log-every", "2", "--checkpoint-every", "2", "--decay-every", "2",
-            "--eval-windows", "8"]
+    argv = [
+        "train",
+        "--dataset",
+        str(tmp_path / "d.npz"),
+        "--run-dir",
+        str(run),
+        "--updates",
+        "4",
+        "--batch-size",
+        "4",
+        "--log-every",
+        "2",
+        "--checkpoint-every",
+        "2",
+        "--decay-every",
+        "2",
+        "--eval-windows",
+        "8",
+    ]
 
     def train(*extra):
         with pytest.raises(SystemExit) as exit_info:
@@ -326,9 +371,10 @@ def test_cli_from_step_continues_from_that_checkpoint(tmp_path, capsys):
     for k in first:
         np.testing.assert_array_equal(again[k], first[k])
 
-    for step, message in [("3", (f"--from-step 3: {str(run / 'checkpoints')!r} holds no checkpoint of update 3; "
-                                 "it holds: 2, 4")),
-                          ("2", f"checkpoint {str(run / 'checkpoints' / '2')!r} (step 2) is damaged")]:
+    for step, message in [
+        ("3", (f"--from-step 3: {str(run / 'checkpoints')!r} holds no checkpoint of update 3; it holds: 2, 4")),
+        ("2", f"checkpoint {str(run / 'checkpoints' / '2')!r} (step 2) is damaged"),
+    ]:
         if step == "2":
             flip_a_bit(run / "checkpoints" / "2")
         code, out = train("--from-step", step)

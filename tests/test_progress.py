@@ -24,8 +24,9 @@ def _metrics(scale: float) -> dict:
 
 def _chunk(update: int, runs: list[dict]) -> ChunkMetrics:
     rows = tuple(csv_row(m, update, 10 * update, float(update), 1.0) for m in runs)
-    return ChunkMetrics(update, 12, 10 * update, 120, 0.0, rows, csv_row(combine_runs(runs), update, 10 * update,
-                                                                          float(update), 2.0))
+    return ChunkMetrics(
+        update, 12, 10 * update, 120, 0.0, rows, csv_row(combine_runs(runs), update, 10 * update, float(update), 2.0)
+    )
 
 
 def test_runs_combine_by_summing_episode_counts_and_averaging_the_rest():
@@ -113,8 +114,11 @@ CSV_CORRUPTIONS = {
     "updates out of order": (_out_of_order, "refused", "is damaged: line 3: its update 2 comes after update 4"),
     "an update twice, other values": (_same_update_other_values, "refused", "line 4: it repeats update 4 with other"),
     "emptied": (_emptied, "refused", "holds no rows, but the run resumes from its checkpoint of update 6"),
-    "deleted": (_deleted, "refused", "is missing, but the run resumes from its checkpoint of update 6: its rows "
-                "cannot be rebuilt"),
+    "deleted": (
+        _deleted,
+        "refused",
+        "is missing, but the run resumes from its checkpoint of update 6: its rows cannot be rebuilt",
+    ),
 }
 
 

@@ -37,8 +37,11 @@ def _run(reset, step, seed, action_list, params):
 
 
 def _finite(tree):
-    return all(np.all(np.isfinite(np.asarray(x, dtype=np.float64))) for x in jax.tree_util.tree_leaves(tree)
-               if np.issubdtype(np.asarray(x).dtype, np.floating))
+    return all(
+        np.all(np.isfinite(np.asarray(x, dtype=np.float64)))
+        for x in jax.tree_util.tree_leaves(tree)
+        if np.issubdtype(np.asarray(x).dtype, np.floating)
+    )
 
 
 @FAST
@@ -67,8 +70,9 @@ def test_unicycle_any_action_stays_within_limits(seed, action_list):
 def test_masks_agree_with_distances(seed, sensor_range):
     params = PARAMS.replace(sensor_range=jnp.float32(sensor_range))
     obs, state = RESET(jax.random.key(seed), params)
-    edge = np.asarray(sensing.edge_distances(state.robot.pos, state.humans.pos, params.robot_radius,
-                                             state.humans.radius))
+    edge = np.asarray(
+        sensing.edge_distances(state.robot.pos, state.humans.pos, params.robot_radius, state.humans.radius)
+    )
     visible = edge <= sensor_range
     assert int(obs.human_mask.sum()) == int(visible.sum())
     # Visible rows come first, sorted by distance, and match the visible humans' relative positions.

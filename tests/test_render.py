@@ -20,8 +20,13 @@ from tgrf_jax.policies import StraightPolicy
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 # A small scene with a short sensor range, so frames mix visible and unseen humans.
-ENV_CONFIG = {"num_humans": 5, "human_policy": "social_force", "predictor": "const_vel", "sensor_range": 2.0,
-              "time_limit": 8.0}
+ENV_CONFIG = {
+    "num_humans": 5,
+    "human_policy": "social_force",
+    "predictor": "const_vel",
+    "sensor_range": 2.0,
+    "time_limit": 8.0,
+}
 CLI_SETS = [f"env.{k}={v}" for k, v in ENV_CONFIG.items()]  # the same env, so the CLI test reuses the compiled scan
 N_EPISODES = 2
 
@@ -29,9 +34,16 @@ N_EPISODES = 2
 # (so never dropped for blocking its start or goal), occlusion on. Social Force humans walk around obstacles.
 WALL = [[-7.0, -3.0], [-7.0, 3.0]]
 LIDAR_RAYS = 24
-OBSTACLE_CONFIG = {"num_humans": 3, "human_policy": "social_force", "scenario": "random_obstacles",
-                   "obstacles": [WALL], "lidar_rays": LIDAR_RAYS, "occlusion": True, "sensor_range": 4.0,
-                   "time_limit": 6.0}
+OBSTACLE_CONFIG = {
+    "num_humans": 3,
+    "human_policy": "social_force",
+    "scenario": "random_obstacles",
+    "obstacles": [WALL],
+    "lidar_rays": LIDAR_RAYS,
+    "occlusion": True,
+    "sensor_range": 4.0,
+    "time_limit": 6.0,
+}
 OBSTACLE_SETS = [f"env.{k}={v}".replace("True", "true") for k, v in OBSTACLE_CONFIG.items()]
 
 
@@ -94,8 +106,7 @@ def test_visibility_matches_the_env(episodes, env):
     p = env.default_params
     seen_both = False
     for ep in episodes:
-        edge = (np.linalg.norm(ep.human_pos - ep.robot_pos[:, None], axis=-1) - float(p.robot_radius)
-                - ep.human_radius)
+        edge = np.linalg.norm(ep.human_pos - ep.robot_pos[:, None], axis=-1) - float(p.robot_radius) - ep.human_radius
         np.testing.assert_array_equal(ep.visible, edge <= float(p.sensor_range))
         for t in range(ep.steps + 1):
             vis = ep.visible[t]
@@ -175,7 +186,8 @@ def test_inline_animation_and_reward_plot(episodes):
     ep = episodes[0]
     html = render.to_jshtml(ep, stride=4, dpi=30)
     assert "<script" in html and html.count("data:image/png;base64") == len(range(0, ep.steps + 1, 4)) + (
-        ep.steps % 4 != 0)
+        ep.steps % 4 != 0
+    )
     fig = render.plot_reward_terms(ep)
     assert len(fig.axes) == 2
     assert render.plot_frame(ep).axes[0].get_title() == "straight: episode 0"
@@ -216,13 +228,16 @@ def test_record_obstacles_and_scans(obstacle_episodes, obstacle_env, episodes):
         layout = _layout(ep.obstacles)
         lidar = functools.partial(obstacles_lib.lidar_scan, num_rays=LIDAR_RAYS, max_range=params.sensor_range)
         scan = jax.jit(jax.vmap(lidar, in_axes=(0, 0, None, 0, 0, None)))(
-            ep.robot_pos, ep.robot_heading, layout, ep.human_pos, ep.human_radius, np.ones(ep.num_humans, bool))
+            ep.robot_pos, ep.robot_heading, layout, ep.human_pos, ep.human_radius, np.ones(ep.num_humans, bool)
+        )
         np.testing.assert_allclose(ep.lidar, scan, atol=1e-4)
         # With env.occlusion the visible humans are those in range and in the robot's line of sight.
-        in_range = (np.linalg.norm(ep.human_pos - ep.robot_pos[:, None], axis=-1) - ep.robot_radius
-                    - ep.human_radius) <= ep.sensor_range
-        in_sight = jax.jit(jax.vmap(obstacles_lib.line_of_sight, in_axes=(0, 0, None)))(ep.robot_pos, ep.human_pos,
-                                                                                       layout)
+        in_range = (
+            np.linalg.norm(ep.human_pos - ep.robot_pos[:, None], axis=-1) - ep.robot_radius - ep.human_radius
+        ) <= ep.sensor_range
+        in_sight = jax.jit(jax.vmap(obstacles_lib.line_of_sight, in_axes=(0, 0, None)))(
+            ep.robot_pos, ep.human_pos, layout
+        )
         np.testing.assert_array_equal(ep.visible, in_range & np.asarray(in_sight))
         hidden += int(np.sum(in_range & ~np.asarray(in_sight)))
         np.testing.assert_array_equal(ep.obs_mask.sum(1), ep.visible.sum(1))
@@ -233,8 +248,9 @@ def test_record_obstacles_and_scans(obstacle_episodes, obstacle_env, episodes):
     assert hits > 0, "the test scene should have rays that hit something"
     assert hidden > 0, "the test scene should hide humans in range behind obstacles"
     first, second = (e.obstacles for e in obstacle_episodes)
-    assert len(first) != len(second) or not all(np.array_equal(a, b) for a, b in zip(first, second)), \
+    assert len(first) != len(second) or not all(np.array_equal(a, b) for a, b in zip(first, second)), (
         "random_obstacles draws a layout per episode"
+    )
     # Without obstacles or a LiDAR there is nothing of either.
     assert episodes[0].obstacles == [] and episodes[0].lidar is None and episodes[0].obstacle_dist is None
     with pytest.raises(ValueError, match="env.lidar_rays"):
@@ -245,7 +261,7 @@ def _in_axes(rgb, rect=(0.1, 0.15, 0.86, 0.8)):
     """The pixels of a `new_figure` frame inside its axes (its legend, below them, left out)."""
     h, w = rgb.shape[:2]
     x, y, dx, dy = rect
-    return rgb[int((1 - y - dy) * h) + 1:int((1 - y) * h) - 1, int(x * w) + 1:int((x + dx) * w) - 1]
+    return rgb[int((1 - y - dy) * h) + 1 : int((1 - y) * h) - 1, int(x * w) + 1 : int((x + dx) * w) - 1]
 
 
 def _teal_pixels(rgb):
@@ -308,8 +324,9 @@ def test_view_limits_clip_long_obstacles(episodes):
 
     ep = episodes[0]
     base = render.view_limits(ep)
-    far = dataclasses.replace(ep, obstacles=[np.array([[-100.0, 0.0], [100.0, 0.0]]),
-                                             np.array([[60.0, 60.0], [61.0, 60.0], [61.0, 61.0]])])
+    far = dataclasses.replace(
+        ep, obstacles=[np.array([[-100.0, 0.0], [100.0, 0.0]]), np.array([[60.0, 60.0], [61.0, 60.0], [61.0, 61.0]])]
+    )
     x0, x1, _, _ = render.view_limits(far)
     assert x1 - x0 < (base[1] - base[0]) + 2 * 1.5 + 1e-6 and max(abs(x0), abs(x1)) < 30
     assert render.view_limits(dataclasses.replace(ep, obstacles=[np.array([[60.0, 60.0], [61.0, 60.0]])])) == base
@@ -333,8 +350,10 @@ def test_obstacle_collision_is_an_outcome(episodes):
     painter = render.draw_frame(render.new_figure()[1], hit, hit.steps)
     assert painter.banner.get_visible() and painter.banner.get_text().startswith("OBSTACLE COLLISION at ")
     assert to_rgba(painter.banner.get_color()) == to_rgba(render.OUTCOME_COLORS["obstacle_collision"])
-    assert render.OUTCOME_COLORS["obstacle_collision"] not in (render.OUTCOME_COLORS["collision"],
-                                                               render.OUTCOME_COLORS["timeout"])
+    assert render.OUTCOME_COLORS["obstacle_collision"] not in (
+        render.OUTCOME_COLORS["collision"],
+        render.OUTCOME_COLORS["timeout"],
+    )
     assert "obstacle collision after" in render.plot_reward_terms(hit)._suptitle.get_text()
 
 
@@ -352,15 +371,31 @@ def test_cli_renders_baseline(tmp_path, capsys, episodes):
     for row, ep in zip(summary["episodes"], episodes):
         assert row["outcome"] == ep.outcome and row["steps"] == ep.steps  # same seed: the same episodes
         assert pathlib.Path(row["gif"]).is_file()
-        assert len(list(pathlib.Path(row["frame_dir"]).glob("frame_*.png"))) == row["frames"] == ep.steps // 2 + 1 + (
-            ep.steps % 2)
+        assert (
+            len(list(pathlib.Path(row["frame_dir"]).glob("frame_*.png")))
+            == row["frames"]
+            == ep.steps // 2 + 1 + (ep.steps % 2)
+        )
 
 
 def test_cli_renders_rays(tmp_path, capsys, obstacle_episodes):
     """--rays draws the LiDAR of an obstacle scenario (the same env as obstacle_episodes: no new compilation)."""
     out = tmp_path / "out"
-    args = ["--policy", "straight", "--episodes", str(N_EPISODES), "--out", str(out), "--dpi", "40", "--stride", "50",
-            "--no-gif", "--no-mp4", "--rays"]
+    args = [
+        "--policy",
+        "straight",
+        "--episodes",
+        str(N_EPISODES),
+        "--out",
+        str(out),
+        "--dpi",
+        "40",
+        "--stride",
+        "50",
+        "--no-gif",
+        "--no-mp4",
+        "--rays",
+    ]
     assert render_main(args + sum((["--set", s] for s in OBSTACLE_SETS), [])) == 0
     summary = json.loads((out / "summary.json").read_text())
     for row, ep in zip(summary["episodes"], obstacle_episodes):
@@ -386,7 +421,8 @@ def test_cli_records_long_renders_in_batches(tmp_path, capsys, monkeypatch, env,
     # batch b is played with evaluate's key of batch b
     second = render.record_episodes(env, StraightPolicy(), render.eval_key(0, 1), 2)
     assert [(e["steps"], e["outcome"]) for e in summary["episodes"]] == [
-        (ep.steps, ep.outcome) for ep in [*episodes, *second]]
+        (ep.steps, ep.outcome) for ep in [*episodes, *second]
+    ]
 
 
 def test_cli_renders_run_dir(tmp_path, capsys):
@@ -405,24 +441,34 @@ def test_cli_renders_run_dir(tmp_path, capsys):
     assert (out / "learned" / "ep000.gif").is_file() and not (out / "learned" / "ep000").exists()
 
 
-@pytest.mark.parametrize("args, message", [
-    (["{tmp}/nope"], "'{tmp}/nope' does not exist (expected a tgrf-train run directory or a YAML config)"),
-    (["{tmp}"], "is not a tgrf-train run directory"),
-    (["{tmp}/cfg.yaml"], "is a config file: name the robot with --policy straight|orca"),
-    ([], "give a RUN_DIR, --pretrained NAME or --policy straight|orca"),
-    (["--policy", "orca", "--set", "env.num_human=3"], "unknown config key 'env.num_human' (did you mean 'num_humans'?)"),
-    (["--policy", "orca", "--set", "env.human_policy=teleport"],
-     "env.human_policy = 'teleport' is not allowed; allowed: one of 'orca', 'social_force'"),
-    (["--policy", "orca", "--set", "reward.sigma_disc=0"], "reward.sigma_disc = 0.0 is out of range"),
-    (["--policy", "orca", "--set", "ppo.lr=1"], "only those can be overridden, not ['ppo.lr=1']"),
-    (["--policy", "orca", "--episodes", "0"], "--episodes = 0 is out of range; allowed: 1 .. 10,000,000"),
-    (["--policy", "orca", "--fps", "0"], "--fps = 0.0 must be > 0"),
-    (["--policy", "orca", "--step", "3"], "--step selects a checkpoint of a RUN_DIR"),
-    (["--policy", "straight", "--rays"],
-     "--rays draws the robot's LiDAR rays, but this env has no LiDAR (env.lidar_rays = 0)"),
-    (["--policy", "straight", "--rays", "--set", "env.scenario=doorway"], "--set env.lidar_rays=72"),
-    (["--policy", "orca", "--out", "{tmp}/cfg.yaml"], "exists and is not a directory"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["{tmp}/nope"], "'{tmp}/nope' does not exist (expected a tgrf-train run directory or a YAML config)"),
+        (["{tmp}"], "is not a tgrf-train run directory"),
+        (["{tmp}/cfg.yaml"], "is a config file: name the robot with --policy straight|orca"),
+        ([], "give a RUN_DIR, --pretrained NAME or --policy straight|orca"),
+        (
+            ["--policy", "orca", "--set", "env.num_human=3"],
+            "unknown config key 'env.num_human' (did you mean 'num_humans'?)",
+        ),
+        (
+            ["--policy", "orca", "--set", "env.human_policy=teleport"],
+            "env.human_policy = 'teleport' is not allowed; allowed: one of 'orca', 'social_force'",
+        ),
+        (["--policy", "orca", "--set", "reward.sigma_disc=0"], "reward.sigma_disc = 0.0 is out of range"),
+        (["--policy", "orca", "--set", "ppo.lr=1"], "only those can be overridden, not ['ppo.lr=1']"),
+        (["--policy", "orca", "--episodes", "0"], "--episodes = 0 is out of range; allowed: 1 .. 10,000,000"),
+        (["--policy", "orca", "--fps", "0"], "--fps = 0.0 must be > 0"),
+        (["--policy", "orca", "--step", "3"], "--step selects a checkpoint of a RUN_DIR"),
+        (
+            ["--policy", "straight", "--rays"],
+            "--rays draws the robot's LiDAR rays, but this env has no LiDAR (env.lidar_rays = 0)",
+        ),
+        (["--policy", "straight", "--rays", "--set", "env.scenario=doorway"], "--set env.lidar_rays=72"),
+        (["--policy", "orca", "--out", "{tmp}/cfg.yaml"], "exists and is not a directory"),
+    ],
+)
 def test_cli_errors_before_compiling(tmp_path, capsys, args, message):
     (tmp_path / "cfg.yaml").write_text("env:\n  num_humans: 3\n")
     fmt = lambda s: s.replace("{tmp}", str(tmp_path))  # noqa: E731
@@ -441,7 +487,9 @@ def test_cli_bad_policy_name(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         render_main(["--policy", "random", "--out", str(tmp_path)])
     assert exc.value.code == 2
-    assert "invalid choice: 'random' (choose from straight, orca)" in capsys.readouterr().err.replace("'straight'", "straight").replace("'orca'", "orca")
+    assert "invalid choice: 'random' (choose from straight, orca)" in capsys.readouterr().err.replace(
+        "'straight'", "straight"
+    ).replace("'orca'", "orca")
 
 
 def test_cli_run_dir_overrides_limited(tmp_path, capsys):

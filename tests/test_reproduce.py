@@ -24,7 +24,10 @@ PAPER = {"sr_mean": 50.0, "sr_std": 5.0, "sr": 55.0, "nt": 20.0, "pl": 21.0, "it
 
 def write_experiment(path, **changes):
     data = {
-        "title": "tiny table", "layout": "table", "config": TINY, "seeds": 2,
+        "title": "tiny table",
+        "layout": "table",
+        "config": TINY,
+        "seeds": 2,
         "set": {"ppo.total_steps": 256, "run.eval_episodes": 4},
         "grid": {"reward.scheme": ["crowdnav_pp", "tgrf"]},
         "columns": {"tgrf": "With TGRF"},
@@ -59,19 +62,22 @@ def test_paper_tables_hold_every_row_of_the_paper():
             assert all(set(v) == set(spec_lib.PAPER_FIELDS) for v in row.paper.values())
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"seeds": 0}, "seeds = 0 must be an integer from 1 to 100"),
-    ({"layout": "pie"}, "layout = 'pie' is not allowed"),
-    ({"colour": 1}, "unknown key(s) ['colour']"),
-    ({"grid": {}}, "grid must map at least one dotted field"),
-    ({"rows": [{"name": "a", "set": {"ppo.lrr": 1}}]}, "row 'a': unknown config key 'ppo.lrr'"),
-    ({"rows": [{"name": "a", "set": {"ppo.lr": -1}}]}, "row 'a': ppo.lr = -1"),
-    ({"rows": [{"name": "a"}, {"name": "a"}]}, "name 'a' must be unique"),
-    ({"rows": [{"name": "a", "paper": {"dsrnn": PAPER}}]}, "'dsrnn' is not a value of the compared axis"),
-    ({"rows": [{"name": "a", "paper": {"tgrf": {"sr_meen": 1}}}]}, "unknown field(s) ['sr_meen']"),
-    ({"rows": [{"name": "a", "grid": {"reward.h_disc": [1.0]}}]}, "must have the experiment's axes"),
-    ({"grid": {"network.name": ["mlp", "dsrnn"]}, "rows": [{"name": "a"}]}, "network.name"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"seeds": 0}, "seeds = 0 must be an integer from 1 to 100"),
+        ({"layout": "pie"}, "layout = 'pie' is not allowed"),
+        ({"colour": 1}, "unknown key(s) ['colour']"),
+        ({"grid": {}}, "grid must map at least one dotted field"),
+        ({"rows": [{"name": "a", "set": {"ppo.lrr": 1}}]}, "row 'a': unknown config key 'ppo.lrr'"),
+        ({"rows": [{"name": "a", "set": {"ppo.lr": -1}}]}, "row 'a': ppo.lr = -1"),
+        ({"rows": [{"name": "a"}, {"name": "a"}]}, "name 'a' must be unique"),
+        ({"rows": [{"name": "a", "paper": {"dsrnn": PAPER}}]}, "'dsrnn' is not a value of the compared axis"),
+        ({"rows": [{"name": "a", "paper": {"tgrf": {"sr_meen": 1}}}]}, "unknown field(s) ['sr_meen']"),
+        ({"rows": [{"name": "a", "grid": {"reward.h_disc": [1.0]}}]}, "must have the experiment's axes"),
+        ({"grid": {"network.name": ["mlp", "dsrnn"]}, "rows": [{"name": "a"}]}, "network.name"),
+    ],
+)
 def test_bad_experiment_files_are_rejected_naming_the_field(tmp_path, changes, message):
     path = write_experiment(tmp_path / "exp.yaml", **changes)
     with pytest.raises(ConfigError) as e:
@@ -99,8 +105,17 @@ def test_report_cells_from_evals(tmp_path):
     exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
     row_dir = tmp_path / "out" / "mlp"
     row_dir.mkdir(parents=True)
-    fields = ["run", "point", "seed", "reward.scheme", "success_rate", "nav_time", "path_length", "itr_future",
-              "itr_disc"]
+    fields = [
+        "run",
+        "point",
+        "seed",
+        "reward.scheme",
+        "success_rate",
+        "nav_time",
+        "path_length",
+        "itr_future",
+        "itr_disc",
+    ]
     rows = [
         ["a", 0, 0, "crowdnav_pp", 0.50, 20.0, 21.0, 6.0, 7.0],
         ["b", 0, 1, "crowdnav_pp", 0.70, 18.0, 19.0, 4.0, 5.0],
@@ -111,10 +126,18 @@ def test_report_cells_from_evals(tmp_path):
         w = csv.writer(f)
         w.writerow(fields)
         w.writerows(rows)
-    (row_dir / "provenance.json").write_text(json.dumps({"wall_s": 90.0, "invocations": [
-        {"commit": "aaa", "machine": "CPU, 16 cores, 1 x GPU", "exit_code": 130, "finished": "t1"},
-        {"commit": "bbb", "machine": "CPU, 2 cores", "exit_code": 130, "finished": "t2"},
-        {"commit": "ccc", "machine": "CPU, 16 cores, 1 x GPU", "exit_code": 0, "finished": "t3"}]}))
+    (row_dir / "provenance.json").write_text(
+        json.dumps(
+            {
+                "wall_s": 90.0,
+                "invocations": [
+                    {"commit": "aaa", "machine": "CPU, 16 cores, 1 x GPU", "exit_code": 130, "finished": "t1"},
+                    {"commit": "bbb", "machine": "CPU, 2 cores", "exit_code": 130, "finished": "t2"},
+                    {"commit": "ccc", "machine": "CPU, 16 cores, 1 x GPU", "exit_code": 0, "finished": "t3"},
+                ],
+            }
+        )
+    )
     records = report.collect(exp, tmp_path / "out")
     cnpp, tgrf = records
     assert cnpp["sr_mean"] == pytest.approx(60.0) and cnpp["sr_std"] == pytest.approx(14.142, abs=1e-3)
@@ -124,22 +147,33 @@ def test_report_cells_from_evals(tmp_path):
     assert "| With TGRF | MLP | 85.0 ± 7.1 (50.0 ± 5.0) | 90.0 (55.0) | 16.00 (20.00) |" in table
     assert "| crowdnav_pp | MLP | 60.0 ± 14.1 |" in table
     assert cnpp["commit"] == "ccc"  # the CSV's commit: the last invocation's
-    assert ("| mlp | 1.5 min | 3 | aaa to ccc | CPU, 16 cores, 1 x GPU; CPU, 2 cores | t3 |"
-            in report.format_report(exp, tmp_path / "out", records))
+    assert "| mlp | 1.5 min | 3 | aaa to ccc | CPU, 16 cores, 1 x GPU; CPU, 2 cores | t3 |" in report.format_report(
+        exp, tmp_path / "out", records
+    )
 
 
 def test_report_header_names_every_compared_axis(tmp_path):
-    exp = spec_lib.load(str(write_experiment(
-        tmp_path / "exp.yaml", layout="heatmap", columns={},
-        grid={"reward.h_disc": [0.625, 2.5], "reward.sigma_disc": [0.1, 0.5]},
-        rows=[{"name": "a", "label": "A"},
-              {"name": "b", "label": "B", "grid": {"reward.h_disc": [5.0], "reward.sigma_disc": [0.1]}}])))
+    exp = spec_lib.load(
+        str(
+            write_experiment(
+                tmp_path / "exp.yaml",
+                layout="heatmap",
+                columns={},
+                grid={"reward.h_disc": [0.625, 2.5], "reward.sigma_disc": [0.1, 0.5]},
+                rows=[
+                    {"name": "a", "label": "A"},
+                    {"name": "b", "label": "B", "grid": {"reward.h_disc": [5.0], "reward.sigma_disc": [0.1]}},
+                ],
+            )
+        )
+    )
     md = report.format_report(exp, tmp_path / "out", [])
     assert "compared inside each row: `reward.h_disc` = 0.625, 2.5, 5.0 x `reward.sigma_disc` = 0.1, 0.5." in md
     for row in ("a", "b"):  # finished rows: the progress header is all that runs
         (tmp_path / "out" / row).mkdir(parents=True)
-        (tmp_path / "out" / row / "evals.csv").write_text("run,point,seed,reward.h_disc,reward.sigma_disc,"
-                                                          "success_rate\nr0,0,0,0.625,0.1,0.5\n")
+        (tmp_path / "out" / row / "evals.csv").write_text(
+            "run,point,seed,reward.h_disc,reward.sigma_disc,success_rate\nr0,0,0,0.625,0.1,0.5\n"
+        )
         (tmp_path / "out" / row / "provenance.json").write_text(FINISHED)
     lines = []
     assert runner.reproduce(exp, tmp_path / "out", log=lines.append) == 0
@@ -165,19 +199,30 @@ SWEEP_OF_TWO = "runs: [{name: r0}, {name: r1}]\n"
 EVALS = "run,point,seed,reward.scheme,success_rate,nav_time\nr0,0,0,tgrf,0.5,{nt}\nr1,0,1,tgrf,{sr},20.0\n"
 
 
-@pytest.mark.parametrize("evals, sweep, provenance, problem", [
-    (EVALS.format(nt="18.0", sr="0.7"), SWEEP_OF_TWO, FINISHED, None),
-    (EVALS.format(nt="nan", sr="0.7"), SWEEP_OF_TWO, FINISHED, None),  # no success: no navigation time
-    (EVALS.split("\n")[0] + "\n", SWEEP_OF_TWO, FINISHED, "evals.csv holds 0 runs, its sweep 2"),
-    (EVALS.format(nt="18.0", sr="0.7"), "runs: [{name: r0}]\n", FINISHED, "evals.csv holds 2 runs, its sweep 1"),
-    (EVALS.format(nt="18.0", sr="0.7x"), SWEEP_OF_TWO, FINISHED, "line 3: success_rate = '0.7x' is not a finite"),
-    (EVALS.format(nt="18.0", sr=""), SWEEP_OF_TWO, FINISHED, "line 3: success_rate = '' is not a finite number"),
-    (EVALS.format(nt="1x", sr="0.7"), SWEEP_OF_TWO, FINISHED, "line 2: nav_time = '1x' is not a number"),
-    (EVALS.format(nt="18.0", sr="0.7").replace("r1,0,1", "r1,0,one"), SWEEP_OF_TWO, FINISHED,
-     "line 3: seed = 'one' is not a whole number"),
-    (EVALS.format(nt="18.0", sr="0.7"), SWEEP_OF_TWO, FINISHED.replace('"exit_code": 0', '"exit_code": null'),
-     "provenance.json does not record the invocation that finished it"),
-])
+@pytest.mark.parametrize(
+    "evals, sweep, provenance, problem",
+    [
+        (EVALS.format(nt="18.0", sr="0.7"), SWEEP_OF_TWO, FINISHED, None),
+        (EVALS.format(nt="nan", sr="0.7"), SWEEP_OF_TWO, FINISHED, None),  # no success: no navigation time
+        (EVALS.split("\n")[0] + "\n", SWEEP_OF_TWO, FINISHED, "evals.csv holds 0 runs, its sweep 2"),
+        (EVALS.format(nt="18.0", sr="0.7"), "runs: [{name: r0}]\n", FINISHED, "evals.csv holds 2 runs, its sweep 1"),
+        (EVALS.format(nt="18.0", sr="0.7x"), SWEEP_OF_TWO, FINISHED, "line 3: success_rate = '0.7x' is not a finite"),
+        (EVALS.format(nt="18.0", sr=""), SWEEP_OF_TWO, FINISHED, "line 3: success_rate = '' is not a finite number"),
+        (EVALS.format(nt="1x", sr="0.7"), SWEEP_OF_TWO, FINISHED, "line 2: nav_time = '1x' is not a number"),
+        (
+            EVALS.format(nt="18.0", sr="0.7").replace("r1,0,1", "r1,0,one"),
+            SWEEP_OF_TWO,
+            FINISHED,
+            "line 3: seed = 'one' is not a whole number",
+        ),
+        (
+            EVALS.format(nt="18.0", sr="0.7"),
+            SWEEP_OF_TWO,
+            FINISHED.replace('"exit_code": 0', '"exit_code": null'),
+            "provenance.json does not record the invocation that finished it",
+        ),
+    ],
+)
 def test_a_row_is_done_only_with_whole_results_and_their_provenance(tmp_path, evals, sweep, provenance, problem):
     row = tmp_path / "mlp"
     (row / "checkpoints" / "4").mkdir(parents=True)
@@ -199,19 +244,27 @@ def test_a_damaged_row_is_reported_as_damaged_never_averaged(tmp_path):
     records = report.collect(exp, tmp_path / "out")
     assert all("sr_mean" not in r and "seeds" not in r for r in records)
     table = report.format_table(exp, records)
-    assert ("damaged (evals.csv line 3: success_rate = 'abc' is not a finite number): rerun tgrf-reproduce exp "
-            "--rows mlp") in table
+    assert (
+        "damaged (evals.csv line 3: success_rate = 'abc' is not a finite number): rerun tgrf-reproduce exp --rows mlp"
+    ) in table
     (row / "evals.csv").write_text(EVALS.format(nt="18.0", sr="0.7"))
     tgrf = [r for r in report.collect(exp, tmp_path / "out") if r["value"] == "tgrf"][0]
     assert tgrf["seeds"] == 2 and tgrf["sr_mean"] == pytest.approx(60.0)
 
 
-@pytest.mark.parametrize("name, text, message", [
-    ("provenance.json", "{not json", "provenance.json' is damaged (JSONDecodeError"),
-    ("provenance.json", '{"invocations": 3}', "provenance.json' is damaged (ValueError: no list of invocations)"),
-    ("experiment.yaml", "rows: [unclosed", "experiment.yaml' is damaged (ParserError: while parsing"),
-    ("experiment.yaml", "- a list\n", "experiment.yaml' is damaged (ValueError: not a mapping with a list of rows)"),
-])
+@pytest.mark.parametrize(
+    "name, text, message",
+    [
+        ("provenance.json", "{not json", "provenance.json' is damaged (JSONDecodeError"),
+        ("provenance.json", '{"invocations": 3}', "provenance.json' is damaged (ValueError: no list of invocations)"),
+        ("experiment.yaml", "rows: [unclosed", "experiment.yaml' is damaged (ParserError: while parsing"),
+        (
+            "experiment.yaml",
+            "- a list\n",
+            "experiment.yaml' is damaged (ValueError: not a mapping with a list of rows)",
+        ),
+    ],
+)
 def test_damaged_bookkeeping_files_are_named_not_tracebacks(tmp_path, capsys, name, text, message):
     write_experiment(tmp_path / "exp.yaml")
     out = tmp_path / "out"
@@ -233,8 +286,7 @@ def test_rows_without_their_experiment_file_are_not_mixed_with_another_budget(tm
     (out / "mlp").mkdir(parents=True)
     (out / "mlp" / "sweep.yaml").write_text(SWEEP_OF_TWO)  # experiment.yaml deleted
     assert main([str(tmp_path / "exp.yaml"), "--out", str(out), "--steps", "512"]) == 2
-    assert (f"'{out}' holds rows (mlp) but no experiment.yaml, so their settings are unknown"
-            in capsys.readouterr().err)
+    assert f"'{out}' holds rows (mlp) but no experiment.yaml, so their settings are unknown" in capsys.readouterr().err
     assert not (out / "experiment.yaml").exists()
 
 
@@ -272,12 +324,21 @@ time.sleep(120)
 def test_commit_is_dirty_for_code_changes_only(tmp_path):
     """Rows write their results into the checkout they run from; only changes to what the training imports or
     reads (package, configs, pyproject.toml) make the recorded commit '+dirty'."""
-    def git(*args):
-        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args],
-                       check=True, capture_output=True)
 
-    files = ["tgrf_jax/env.py", "configs/default.yaml", "pyproject.toml", "docs/results.md",
-             "tgrf_jax/pretrained/old/meta.json"]
+    def git(*args):
+        subprocess.run(
+            ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+            check=True,
+            capture_output=True,
+        )
+
+    files = [
+        "tgrf_jax/env.py",
+        "configs/default.yaml",
+        "pyproject.toml",
+        "docs/results.md",
+        "tgrf_jax/pretrained/old/meta.json",
+    ]
     for name in files:
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_text("0\n")
@@ -370,8 +431,10 @@ def test_sigterm_to_reproduce_stops_the_sweep_with_a_checkpoint_and_records_it(t
         runner.reproduce(exp, out, log=terminate_at_first_sweep_line)
     assert signal.getsignal(signal.SIGTERM) is before
     assert [child.returncode for child in children] == [130]
-    assert lines[-2:] == ["  mlp | stopped at update 7, with a checkpoint",
-                          "[exp] row mlp interrupted; rerun the same command to resume"]
+    assert lines[-2:] == [
+        "  mlp | stopped at update 7, with a checkpoint",
+        "[exp] row mlp interrupted; rerun the same command to resume",
+    ]
     prov = json.loads((out / "mlp" / "provenance.json").read_text())
     assert [i["exit_code"] for i in prov["invocations"]] == [130]
     assert (out / "reproduce.log").read_text().endswith("row mlp interrupted; rerun the same command to resume\n")
@@ -413,8 +476,18 @@ def test_a_sweep_whose_reproduce_is_killed_stops_with_a_checkpoint(tmp_path):
 
     marker = tmp_path / "checkpoint"
     parent = subprocess.Popen(
-        [sys.executable, "-c", REPRODUCE_PARENT, str(write_experiment(tmp_path / "exp.yaml")), str(tmp_path / "row"),
-         TRAINING_CHILD, str(marker)], stdout=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            REPRODUCE_PARENT,
+            str(write_experiment(tmp_path / "exp.yaml")),
+            str(tmp_path / "row"),
+            TRAINING_CHILD,
+            str(marker),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         for line in parent.stdout:
             if "| update 2" in line:
@@ -459,8 +532,21 @@ def test_reproduce_runs_rows_writes_the_table_and_skips_finished_rows(tmp_path):
     md = (out / "report.md").read_text()
     assert "Rows finished: 1/2" in md and "(55.0)" in md and "| Later |" in md
     # --report-only exports the finished rows' policies when asked to.
-    assert main([str(tmp_path / "exp.yaml"), "--seeds", "1", "--out", str(out), "--report-only",
-                 "--export-pretrained", str(tmp_path / "again")]) == 0
+    assert (
+        main(
+            [
+                str(tmp_path / "exp.yaml"),
+                "--seeds",
+                "1",
+                "--out",
+                str(out),
+                "--report-only",
+                "--export-pretrained",
+                str(tmp_path / "again"),
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in (tmp_path / "again").iterdir()) == ["exp-mlp-crowdnav_pp", "exp-mlp-tgrf"]
     # Other settings into the same directory are refused.
     with pytest.raises(ConfigError, match="holds results of this experiment with other settings"):
@@ -497,5 +583,6 @@ def test_regime_isolation_rows_each_put_back_one_setting_of_the_paper_regime():
         changed = {k for k in base if cfg[k] != base[k]} - schedule
         assert changed == expected[row.name], row.name
         assert all(cfg[k] == default[k] != base[k] for k in changed), row.name
-        assert cfg["ppo.num_envs"] * cfg["ppo.num_steps"] * (cfg["ppo.total_steps"] // (
-            cfg["ppo.num_envs"] * cfg["ppo.num_steps"])) == pytest.approx(3.0e6, rel=1e-3)
+        assert cfg["ppo.num_envs"] * cfg["ppo.num_steps"] * (
+            cfg["ppo.total_steps"] // (cfg["ppo.num_envs"] * cfg["ppo.num_steps"])
+        ) == pytest.approx(3.0e6, rel=1e-3)

@@ -39,8 +39,7 @@ def test_tgrf_circle_is_the_tgrf_code_with_its_gaussian_off():
     p = R.reward_params("tgrf_circle")
     assert float(R.disc_reward(jnp.float32(0.1), p)) == pytest.approx(-1.0, abs=1e-6)
     assert float(R.pot_reward(0.25, p)) == pytest.approx(0.375)
-    terms = R.step_reward(p, collided=True, reached=False, dmin=-0.1, delta_d=0.0,
-                          pred_hits=jnp.zeros((1, 5), bool))
+    terms = R.step_reward(p, collided=True, reached=False, dmin=-0.1, delta_d=0.0, pred_hits=jnp.zeros((1, 5), bool))
     assert float(terms.total) == pytest.approx(-10.0)
 
 
@@ -85,7 +84,11 @@ def test_grad_of_step_reward_wrt_reward_params():
 
     def total(p):
         return R.step_reward(
-            p, collided=False, reached=False, dmin=jnp.float32(0.2), delta_d=jnp.float32(0.1),
+            p,
+            collided=False,
+            reached=False,
+            dmin=jnp.float32(0.2),
+            delta_d=jnp.float32(0.1),
             pred_hits=jnp.zeros((2, 5), bool),
         ).total
 

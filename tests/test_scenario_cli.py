@@ -11,15 +11,27 @@ from tgrf_jax.config import SCENARIOS
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
 # 4 humans out of 6 slots on average, 5-second episodes: short renders, and the variable crowd in every program.
-SHORT = ["--set", "env.num_humans=6", "--set", "env.active_humans_min=2", "--set", "env.active_humans_max=6",
-         "--set", "env.time_limit=5"]
+SHORT = [
+    "--set",
+    "env.num_humans=6",
+    "--set",
+    "env.active_humans_min=2",
+    "--set",
+    "env.active_humans_max=6",
+    "--set",
+    "env.time_limit=5",
+]
 
 
 def _train_eval_render(name, tmp_path, capsys=None):
     run = tmp_path / name
     overrides = ["--set", f"env.scenario={name}", *SHORT]
-    assert train_main([TINY, "--out-dir", str(run), "--set", "ppo.total_steps=256", "--set", "run.eval_episodes=4",
-                       *overrides]) == 0
+    assert (
+        train_main(
+            [TINY, "--out-dir", str(run), "--set", "ppo.total_steps=256", "--set", "run.eval_episodes=4", *overrides]
+        )
+        == 0
+    )
     assert f"scenario: {name}" in (run / "config.yaml").read_text()
     out = tmp_path / "eval.json"
     assert eval_main([str(run), "--episodes", "4", "--policy", "orca", "--out", str(out), "--all-metrics"]) == 0
@@ -46,8 +58,10 @@ def test_every_scenario_runs_in_every_tool(name, tmp_path):
 
 def test_suite_writes_its_table_and_thumbnails(tmp_path, capsys):
     out = tmp_path / "suite"
-    assert eval_main([TINY, "--suite", str(out), "--episodes", "2", "--policy", "straight", "--set",
-                      "env.time_limit=3"]) == 0
+    assert (
+        eval_main([TINY, "--suite", str(out), "--episodes", "2", "--policy", "straight", "--set", "env.time_limit=3"])
+        == 0
+    )
     rows = (out / "suite.csv").read_text().splitlines()
     assert len(rows) == 1 + len(SCENARIOS) * 4 and rows[0].startswith("scenario,humans,policy,n_episodes")
     assert "spl" in rows[0] and "min_ttc" in rows[0]

@@ -17,12 +17,21 @@ from tgrf_jax.train.shards import SHARD_AXIS
 
 
 def sharded_config(**ppo) -> TrainConfig:
-    return TrainConfig.from_dict({
-        "env": {"num_humans": 3, "predictor": "const_vel"},
-        "network": {"name": "mlp"},  # shards split the envs; the network does not matter and MLP compiles fastest
-        "ppo": {"num_envs": 8, "num_steps": 8, "total_steps": 8 * 8 * 4, "update_epochs": 2, "num_minibatches": 2,
-                "num_shards": 2, **ppo},
-    })
+    return TrainConfig.from_dict(
+        {
+            "env": {"num_humans": 3, "predictor": "const_vel"},
+            "network": {"name": "mlp"},  # shards split the envs; the network does not matter and MLP compiles fastest
+            "ppo": {
+                "num_envs": 8,
+                "num_steps": 8,
+                "total_steps": 8 * 8 * 4,
+                "update_epochs": 2,
+                "num_minibatches": 2,
+                "num_shards": 2,
+                **ppo,
+            },
+        }
+    )
 
 
 def test_shard_sizes_follow_the_config():
@@ -30,11 +39,17 @@ def test_shard_sizes_follow_the_config():
     assert (p.shard_envs, p.num_microbatches, p.reset_slots) == (32, 2, 4)  # 8-env minibatches in 4-env slices
 
 
-@pytest.mark.parametrize("ppo, pattern", [
-    ({"num_envs": 12, "num_minibatches": 4}, r"ppo.num_envs = 12 must be divisible by ppo.num_shards x "
-                                             r"ppo.num_minibatches = 2 x 4"),
-    ({"num_shards": 0}, r"ppo.num_shards.*allowed"),
-])
+@pytest.mark.parametrize(
+    "ppo, pattern",
+    [
+        (
+            {"num_envs": 12, "num_minibatches": 4},
+            r"ppo.num_envs = 12 must be divisible by ppo.num_shards x "
+            r"ppo.num_minibatches = 2 x 4",
+        ),
+        ({"num_shards": 0}, r"ppo.num_shards.*allowed"),
+    ],
+)
 def test_bad_shard_settings_are_rejected_with_the_fields_named(ppo, pattern):
     with pytest.raises(ConfigError, match=pattern):
         sharded_config(**ppo)
@@ -87,8 +102,13 @@ print(json.dumps({"devices": len(jax.devices()), "mesh": train(mesh), "vmap": tr
 def placements():
     env = dict(os.environ, JAX_PLATFORMS="cpu", **cpu_devices_env(2))
     # the timeout is a hang guard for a busy machine, not a speed check
-    out = subprocess.run([sys.executable, "-c", PLACEMENTS, json.dumps(sharded_config().to_dict())], env=env,
-                         capture_output=True, text=True, timeout=900)
+    out = subprocess.run(
+        [sys.executable, "-c", PLACEMENTS, json.dumps(sharded_config().to_dict())],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout.strip().splitlines()[-1])
 

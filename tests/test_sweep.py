@@ -93,8 +93,9 @@ def _assert_evals(path_a, path_b, exact: bool):
 
 
 def _sweep_cli(args, env_extra, **kw):
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
-               **env_extra)
+    env = dict(
+        os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}", **env_extra
+    )
     code = "import sys; from tgrf_jax.cli.sweep import main; sys.exit(main(sys.argv[1:]))"
     return subprocess.Popen([sys.executable, "-c", code, TINY, *GRID, *SETS, *args], cwd=ROOT, env=env, **kw)
 
@@ -110,8 +111,17 @@ def sweep(tmp_path_factory):
 
 
 def test_sweep_artifacts(sweep):
-    for name in ("sweep.yaml", "config.yaml", "metrics.csv", "progress.log", "evals.csv", "summary.csv", "summary.md",
-                 "learning_curves.png", "grid_metrics.png"):
+    for name in (
+        "sweep.yaml",
+        "config.yaml",
+        "metrics.csv",
+        "progress.log",
+        "evals.csv",
+        "summary.csv",
+        "summary.md",
+        "learning_curves.png",
+        "grid_metrics.png",
+    ):
         assert (sweep / name).is_file() and (sweep / name).stat().st_size > 0, name
     assert sorted(p.name for p in (sweep / "runs").iterdir()) == NAMES
     for name in NAMES:
@@ -132,9 +142,11 @@ def test_sweep_artifacts(sweep):
     summary = _rows(sweep / "summary.csv")
     assert [float(r["reward.h_disc"]) for r in summary] == [1.0, 2.5, 4.0]
     for p, row in enumerate(summary):
-        sr = [json.loads((sweep / "runs" / n / "eval.json").read_text())["results"]["learned"]["success_rate"]
-              for n in NAMES[2 * p: 2 * p + 2]]
-        assert [float(evals[n]["success_rate"]) for n in NAMES[2 * p: 2 * p + 2]] == sr
+        sr = [
+            json.loads((sweep / "runs" / n / "eval.json").read_text())["results"]["learned"]["success_rate"]
+            for n in NAMES[2 * p : 2 * p + 2]
+        ]
+        assert [float(evals[n]["success_rate"]) for n in NAMES[2 * p : 2 * p + 2]] == sr
         assert float(row["success_rate_mean"]) == pytest.approx(np.mean(sr))
         assert float(row["success_rate_std"]) == pytest.approx(np.std(sr, ddof=1))
         assert row["seeds"] == "2"
@@ -147,8 +159,9 @@ def test_run_in_sweep_matches_tgrf_train(sweep, tmp_path):
     parameters / losses / returns equal up to float32 rounding (the batched program is compiled differently);
     bit-identical when the sweep holds only that run."""
     run_dir = sweep / "runs" / RUN
-    alone_cfg = TrainConfig.from_yaml(TINY, ["reward.h_disc=2.5", "reward.sigma_disc=0.2", "run.seed=1",
-                                              "run.eval_episodes=8"])
+    alone_cfg = TrainConfig.from_yaml(
+        TINY, ["reward.h_disc=2.5", "reward.sigma_disc=0.2", "run.seed=1", "run.eval_episodes=8"]
+    )
     sweep_cfg = TrainConfig.from_dict(load_yaml(run_dir / "config.yaml"))
     a, b = alone_cfg.to_dict(), sweep_cfg.to_dict()
     a["run"].pop("name"), b["run"].pop("name")
@@ -170,8 +183,9 @@ def test_run_in_sweep_matches_tgrf_train(sweep, tmp_path):
 
     # The sequential layout trains each run through tgrf-train's own program: bit-identical, evaluation included,
     # also across an interruption (its checkpoints hold the batched layout's stacked state).
-    seq = SweepSpec.create(TINY, ["reward.h_disc=1.0,2.5", "reward.sigma_disc=0.2"], "1,", ["run.eval_episodes=8"],
-                           layout="sequential")
+    seq = SweepSpec.create(
+        TINY, ["reward.h_disc=1.0,2.5", "reward.sigma_disc=0.2"], "1,", ["run.eval_episodes=8"], layout="sequential"
+    )
     run_sweep(seq, tmp_path / "seq", log=lambda m: None, stop_after_updates=6)
     assert load_yaml(tmp_path / "seq" / "sweep.yaml")["layout"] == "sequential"
     assert main(["--resume", str(tmp_path / "seq")]) == 0
@@ -270,13 +284,23 @@ def _damage_a_middle_row(out):
     (out / "metrics.csv").write_text("".join(lines))
 
 
-@pytest.mark.parametrize("damage, error", [
-    (_damage_a_middle_row, "'{out}/metrics.csv' is damaged: line 18: loss = 'abc' is not a number"),
-    (lambda out: (out / "metrics.csv").write_text("".join((out / "metrics.csv").read_text().splitlines(True)[1:])),
-     "'{out}/metrics.csv' is damaged: line 1 is not its header (expected run,point,seed,reward.h_disc,...)"),
-    (lambda out: shutil.rmtree(out / "runs" / RUN),
-     "run directory '{out}/runs/" + RUN + "' of the sweep is missing or has no config.yaml; restore it"),
-], ids=["non-numeric value", "no header", "run directory deleted"])
+@pytest.mark.parametrize(
+    "damage, error",
+    [
+        (_damage_a_middle_row, "'{out}/metrics.csv' is damaged: line 18: loss = 'abc' is not a number"),
+        (
+            lambda out: (out / "metrics.csv").write_text(
+                "".join((out / "metrics.csv").read_text().splitlines(True)[1:])
+            ),
+            "'{out}/metrics.csv' is damaged: line 1 is not its header (expected run,point,seed,reward.h_disc,...)",
+        ),
+        (
+            lambda out: shutil.rmtree(out / "runs" / RUN),
+            "run directory '{out}/runs/" + RUN + "' of the sweep is missing or has no config.yaml; restore it",
+        ),
+    ],
+    ids=["non-numeric value", "no header", "run directory deleted"],
+)
 def test_resume_of_a_damaged_finished_sweep_names_the_damage(sweep, tmp_path, capsys, damage, error):
     """A finished sweep whose bookkeeping was damaged is not reported done: exit 2, one line naming the file, and
     nothing compiled, trained or rewritten."""
@@ -290,7 +314,7 @@ def test_resume_of_a_damaged_finished_sweep_names_the_damage(sweep, tmp_path, ca
     std = capsys.readouterr()
     lines = std.err.splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"tgrf-sweep: error: {error.format(out=out)}"), std.err
-    assert "done:" not in std.out and "done:" not in (out / "progress.log").read_text()[len(log):]
+    assert "done:" not in std.out and "done:" not in (out / "progress.log").read_text()[len(log) :]
     assert counter.compiles == 0
     assert {p: p.read_bytes() for p in kept} == kept
 
@@ -298,8 +322,9 @@ def test_resume_of_a_damaged_finished_sweep_names_the_damage(sweep, tmp_path, ca
 def test_sharded_over_4_devices_matches_unsharded(sweep, tmp_path):
     """The same sweep on 4 fake CPU devices (6 runs padded to 8, 2 per device) in a subprocess."""
     out = tmp_path / "sharded"
-    proc = _sweep_cli(["--out", str(out)], cpu_devices_env(4),
-                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = _sweep_cli(
+        ["--out", str(out)], cpu_devices_env(4), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     _, stderr = proc.communicate(timeout=600)
     assert proc.returncode == 0, stderr[-3000:]
     log = (out / "progress.log").read_text()
@@ -324,9 +349,15 @@ def test_two_hosts_match_one_host(tmp_path):
     assert _sweep_cli(["--out", str(one)], four).wait(timeout=900) == 0
     two_devices = cpu_devices_env(2)
     port = 12000 + os.getpid() % 2000
-    procs = [_sweep_cli(["--out", str(two), "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
-                         "--process-id", str(i)], two_devices, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-             for i in range(2)]
+    procs = [
+        _sweep_cli(
+            ["--out", str(two), "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)],
+            two_devices,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for i in range(2)
+    ]
     assert [p.wait(timeout=900) for p in procs] == [0, 0]
     assert "on 4 cpu device(s), 2 run(s) per device" in (two / "progress.log").read_text()
     for name in NAMES:
@@ -342,9 +373,20 @@ def test_two_hosts_match_one_host(tmp_path):
 
 def test_grid_parsing_and_plan(capsys):
     fields = griddable_fields()
-    for name in ("ppo.lr", "ppo.ent_coef", "ppo.clip_eps", "ppo.gamma", "ppo.gae_lambda", "ppo.vf_coef",
-                 "ppo.max_grad_norm", "reward.h_disc", "reward.sigma_disc", "reward.scheme", "env.sf_a",
-                 "env.robot_v_max"):
+    for name in (
+        "ppo.lr",
+        "ppo.ent_coef",
+        "ppo.clip_eps",
+        "ppo.gamma",
+        "ppo.gae_lambda",
+        "ppo.vf_coef",
+        "ppo.max_grad_norm",
+        "reward.h_disc",
+        "reward.sigma_disc",
+        "reward.scheme",
+        "env.sf_a",
+        "env.robot_v_max",
+    ):
         assert name in fields, name
     for name in ("ppo.num_envs", "ppo.num_steps", "network.name", "env.num_humans", "env.predictor", "run.seed"):
         assert name not in fields, name
@@ -370,15 +412,29 @@ def test_summary_and_plots_from_results(tmp_path):
     for r in spec.runs():
         d = tmp_path / "runs" / r.name
         d.mkdir(parents=True)
-        rows = [dict(update=u, env_steps=128 * u, episodes=4, episode_return=r.point + u, success_rate=0.25 * r.point)
-                for u in (2, 4, 6)]
+        rows = [
+            dict(update=u, env_steps=128 * u, episodes=4, episode_return=r.point + u, success_rate=0.25 * r.point)
+            for u in (2, 4, 6)
+        ]
         with open(d / "metrics.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=fields)
             w.writeheader()
             w.writerows(rows)
         long_rows += [dict(row, run=r.name, point=r.point, seed=r.seed) for row in rows]
-        res = {k: 0.0 for k in ("collision_rate", "timeout_rate", "nav_time", "path_length", "itr_future",
-                                 "itr_disc", "intrusion_dist_future", "intrusion_dist_disc", "mean_return")}
+        res = {
+            k: 0.0
+            for k in (
+                "collision_rate",
+                "timeout_rate",
+                "nav_time",
+                "path_length",
+                "itr_future",
+                "itr_disc",
+                "intrusion_dist_future",
+                "intrusion_dist_disc",
+                "mean_return",
+            )
+        }
         res.update(n_episodes=10, success_rate=0.1 * r.point + 0.01 * r.seed, itr_disc=None)
         evals.append({"results": {"learned": res}})
     with open(tmp_path / "metrics.csv", "w", newline="") as f:

@@ -56,7 +56,11 @@ def test_eval_run_dir(tiny_run, tmp_path, monkeypatch, capsys):
     assert {r["n_episodes"] for r in payload["results"].values()} == {6}
     lines = capsys.readouterr().out.splitlines()
     assert [line.strip() for line in lines if "/6 episodes" in line] == [
-        "learned: 3/6 episodes", "learned: 6/6 episodes", "straight: 3/6 episodes", "straight: 6/6 episodes"]
+        "learned: 3/6 episodes",
+        "learned: 6/6 episodes",
+        "straight: 3/6 episodes",
+        "straight: 6/6 episodes",
+    ]
 
 
 def test_print_config_applies_overrides(capsys):
@@ -69,8 +73,9 @@ def test_resume_of_a_finished_run_trains_and_evaluates_nothing(tiny_run, tmp_pat
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
     (run / "learning_curve.png").unlink()
-    kept = {p: p.stat().st_mtime_ns
-            for p in [run / "eval.json", run / "metrics.csv", *(run / "checkpoints").rglob("*")]}
+    kept = {
+        p: p.stat().st_mtime_ns for p in [run / "eval.json", run / "metrics.csv", *(run / "checkpoints").rglob("*")]
+    }
     with CompileCounter() as counter:
         assert train_main(["--resume", str(run)]) == 0
     assert counter.compiles == 0
@@ -133,8 +138,16 @@ def _cli(args, **kw):
 @pytest.mark.slow
 def test_resume_after_sigkill_matches_uninterrupted(tmp_path):
     """Kill -9 a run right after its first checkpoint, resume it, and compare with an uninterrupted run."""
-    sets = ["--set", "ppo.total_steps=8192", "--set", "run.checkpoint_every=4", "--set", "run.log_every=2",
-            "--set", "run.eval_episodes=0"]  # 64 updates, 16 checkpoints
+    sets = [
+        "--set",
+        "ppo.total_steps=8192",
+        "--set",
+        "run.checkpoint_every=4",
+        "--set",
+        "run.log_every=2",
+        "--set",
+        "run.eval_episodes=0",
+    ]  # 64 updates, 16 checkpoints
     full, killed = tmp_path / "full", tmp_path / "killed"
     assert _cli([TINY, "--out-dir", str(full), *sets]).wait(timeout=300) == 0
 

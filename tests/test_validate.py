@@ -23,27 +23,38 @@ def params():
     return make_env(num_humans=2, predictor="none").default_params
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(dt=0.0), "env.dt = 0.0 is out of range; allowed: >= 0.01 and <= 1.0"),
-    (dict(dt=-0.25), "env.dt = -0.25 is out of range; allowed: >= 0.01 and <= 1.0"),
-    (dict(dt=np.nan), "env.dt = nan must be finite; allowed: >= 0.01 and <= 1.0"),
-    (dict(robot_radius=-0.3), "env.robot_radius = -0.3 is out of range; allowed: > 0.0"),
-    (dict(human_radius_min=-0.3), "env.human_radius_min = -0.3 is out of range; allowed: > 0.0"),
-    (dict(time_limit=1e9), r"env.time_limit = 1e\+09 is out of range; allowed: > 0.0 and <= 1000.0"),
-    (dict(human_radius_min=0.6), "env.human_radius_min = 0.6 must be <= env.human_radius_max = 0.5"),
-    (dict(time_limit=0.1), "env.time_limit = 0.1 must be >= env.dt = 0.25"),
-    (dict(dt=jnp.array([0.25, 0.0, 0.1])), r"env.dt\[1\] = 0.0 is out of range"),  # batched: the element named
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(dt=0.0), "env.dt = 0.0 is out of range; allowed: >= 0.01 and <= 1.0"),
+        (dict(dt=-0.25), "env.dt = -0.25 is out of range; allowed: >= 0.01 and <= 1.0"),
+        (dict(dt=np.nan), "env.dt = nan must be finite; allowed: >= 0.01 and <= 1.0"),
+        (dict(robot_radius=-0.3), "env.robot_radius = -0.3 is out of range; allowed: > 0.0"),
+        (dict(human_radius_min=-0.3), "env.human_radius_min = -0.3 is out of range; allowed: > 0.0"),
+        (dict(time_limit=1e9), r"env.time_limit = 1e\+09 is out of range; allowed: > 0.0 and <= 1000.0"),
+        (dict(human_radius_min=0.6), "env.human_radius_min = 0.6 must be <= env.human_radius_max = 0.5"),
+        (dict(time_limit=0.1), "env.time_limit = 0.1 must be >= env.dt = 0.25"),
+        (dict(dt=jnp.array([0.25, 0.0, 0.1])), r"env.dt\[1\] = 0.0 is out of range"),  # batched: the element named
+    ],
+)
 def test_hand_built_env_params_name_the_field_and_the_allowed_range(params, change, message):
     bad = params.replace(**{k: jnp.asarray(v, jnp.float32) for k, v in change.items()})
     with pytest.raises(ValueError, match=message):
         bad.validate()
 
 
-@pytest.mark.parametrize("value, kind", [
-    ("0.1", "str"), (None, "NoneType"), (True, "bool"), (1 + 2j, "complex"), ([0.1, [0.2]], "list"),
-    (["0.1", "0.2"], "array of <U3"), ("9" * 5000, "str"),
-])
+@pytest.mark.parametrize(
+    "value, kind",
+    [
+        ("0.1", "str"),
+        (None, "NoneType"),
+        (True, "bool"),
+        (1 + 2j, "complex"),
+        ([0.1, [0.2]], "list"),
+        (["0.1", "0.2"], "array of <U3"),
+        ("9" * 5000, "str"),
+    ],
+)
 def test_a_leaf_that_is_no_number_is_named_with_what_is_allowed(params, value, kind):
     # replace() takes anything: numpy's comparisons would fail on a string without naming the field, and a bool
     # would pass as 0 or 1
@@ -72,8 +83,11 @@ def test_traced_params_cannot_be_checked(params):
 
 def test_evaluate_and_record_check_their_params_before_compiling(params):
     env = make_env(num_humans=2, predictor="none")
-    key, zero_dt, negative_radius = jax.random.key(0), params.replace(dt=np.float32(0.0)), params.replace(
-        robot_radius=np.float32(-0.3))
+    key, zero_dt, negative_radius = (
+        jax.random.key(0),
+        params.replace(dt=np.float32(0.0)),
+        params.replace(robot_radius=np.float32(-0.3)),
+    )
     with CompileCounter() as counter:
         with pytest.raises(ConfigError, match="env.dt = 0.0 is out of range"):  # dt 0 never ends an episode
             evaluate(env, StraightPolicy(), key, 4, params=zero_dt)

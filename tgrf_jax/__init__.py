@@ -17,6 +17,14 @@ except importlib.metadata.PackageNotFoundError:  # a source tree on sys.path tha
     __version__ = "unknown"
 
 __all__ = [
-    "CrowdNavEnv", "ConfigError", "EnvConfig", "EnvParams", "EnvState", "Info", "Obs", "RewardConfig",
-    "configure_cpu", "reward",
+    "CrowdNavEnv",
+    "ConfigError",
+    "EnvConfig",
+    "EnvParams",
+    "EnvState",
+    "Info",
+    "Obs",
+    "RewardConfig",
+    "configure_cpu",
+    "reward",
 ]

@@ -13,7 +13,8 @@ import dataclasses
 import math
 import numbers
 import re
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import yaml
@@ -22,7 +23,6 @@ from tgrf_jax import reward as reward_lib
 from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
     ConfigError,
     _coerce,
-    _show,
     _unknown_key_error,
     apply_overrides,
     check_fields,
@@ -37,8 +37,18 @@ from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exp
 )
 
 __all__ = [
-    "ConfigError", "EnvConfig", "NetworkConfig", "PPOConfig", "RewardConfig", "RunConfig", "TrainConfig",
-    "apply_overrides", "config_fields", "griddable_fields", "load_yaml", "reward_config_from_dict",
+    "ConfigError",
+    "EnvConfig",
+    "NetworkConfig",
+    "PPOConfig",
+    "RewardConfig",
+    "RunConfig",
+    "TrainConfig",
+    "apply_overrides",
+    "config_fields",
+    "griddable_fields",
+    "load_yaml",
+    "reward_config_from_dict",
 ]
 
 # --------------------------------------------------------------------------------------------------
@@ -110,8 +120,16 @@ _ResolvedReward = _resolved_reward_class()
 
 # The concrete scenarios (tgrf_jax.env.scenario, docs/scenarios.md): open spaces with a crowd, then layouts with
 # static obstacles. `env.scenario: mix` draws among `env.mix_scenarios` (default: the crowd scenarios).
-CROWD_SCENARIOS = ("circle_crossing", "square_crossing", "parallel_traffic", "perpendicular_traffic",
-                   "frontal_approach", "robot_overtaking", "robot_crowding", "random")
+CROWD_SCENARIOS = (
+    "circle_crossing",
+    "square_crossing",
+    "parallel_traffic",
+    "perpendicular_traffic",
+    "frontal_approach",
+    "robot_overtaking",
+    "robot_crowding",
+    "random",
+)
 OBSTACLE_SCENARIOS = ("corridor", "doorway", "intersection", "random_obstacles")
 SCENARIOS = CROWD_SCENARIOS + OBSTACLE_SCENARIOS
 # Obstacle slots the scenarios draw into (random_obstacles: up to 8 boxes) and their vertex capacity.
@@ -146,22 +164,36 @@ class EnvConfig:
 
     # --- static: shapes and code paths -------------------------------------------------------------
     num_humans: int = spec(20, low=0, high=MAX_HUMANS, doc="human slots (the capacity; see active_humans_*)")
-    scenario: str = spec("circle_crossing", choices=SCENARIOS + ("mix",),
-                         doc="how starts, goals, goal changes, respawns and obstacles are drawn (docs/scenarios.md); "
-                             "mix: a scenario of env.mix_scenarios drawn per episode by env.scenario_weights")
+    scenario: str = spec(
+        "circle_crossing",
+        choices=SCENARIOS + ("mix",),
+        doc="how starts, goals, goal changes, respawns and obstacles are drawn (docs/scenarios.md); "
+        "mix: a scenario of env.mix_scenarios drawn per episode by env.scenario_weights",
+    )
     mix_scenarios: tuple | None = spec(
-        None, doc="mix: the scenarios it draws from, in the order of env.scenario_weights (None: the crowd "
-                  f"scenarios, {', '.join(CROWD_SCENARIOS)})")
+        None,
+        doc="mix: the scenarios it draws from, in the order of env.scenario_weights (None: the crowd "
+        f"scenarios, {', '.join(CROWD_SCENARIOS)})",
+    )
     obstacles: tuple | None = spec(
-        None, doc="a fixed layout in every episode, beside the scenario's own obstacles: a list of polygons, each "
-                  "a list of [x, y] vertices counter-clockwise (2 vertices: a wall segment)")
-    lidar_rays: int = spec(0, low=0, high=MAX_LIDAR_RAYS,
-                           doc="rays of the robot's 360-degree 2-D LiDAR over env.sensor_range (0: no LiDAR)")
+        None,
+        doc="a fixed layout in every episode, beside the scenario's own obstacles: a list of polygons, each "
+        "a list of [x, y] vertices counter-clockwise (2 vertices: a wall segment)",
+    )
+    lidar_rays: int = spec(
+        0,
+        low=0,
+        high=MAX_LIDAR_RAYS,
+        doc="rays of the robot's 360-degree 2-D LiDAR over env.sensor_range (0: no LiDAR)",
+    )
     occlusion: bool = spec(False, doc="humans hidden behind an obstacle are not observed")
     human_policy: str = spec("orca", choices=("orca", "social_force"))
     predictor: str = spec("const_vel", choices=("none", "const_vel", "truth", "gst"))
-    predictor_params: str = spec("auto", choices=("auto", "orca", "social_force"),
-                                 doc="gst: shipped parameters to use (auto: those of env.human_policy's crowd)")
+    predictor_params: str = spec(
+        "auto",
+        choices=("auto", "orca", "social_force"),
+        doc="gst: shipped parameters to use (auto: those of env.human_policy's crowd)",
+    )
     pred_horizon: int = spec(5, low=1, high=50, doc="K, prediction steps")
     kinematics: str = spec("holonomic", choices=("holonomic", "unicycle"))
     robot_visible: bool = spec(False, doc="humans see and avoid the robot")
@@ -174,16 +206,22 @@ class EnvConfig:
 
     # --- numeric (traced) --------------------------------------------------------------------------
     active_humans_min: float | None = traced(
-        None, low=0, high=MAX_HUMANS,
+        None,
+        low=0,
+        high=MAX_HUMANS,
         doc="fewest humans present in an episode: the count is drawn per episode ~ U{min..max} out of the "
-            "env.num_humans slots (None: env.num_humans)")
-    active_humans_max: float | None = traced(None, low=0, high=MAX_HUMANS,
-                                             doc="most humans present in an episode (None: env.num_humans)")
+        "env.num_humans slots (None: env.num_humans)",
+    )
+    active_humans_max: float | None = traced(
+        None, low=0, high=MAX_HUMANS, doc="most humans present in an episode (None: env.num_humans)"
+    )
     scenario_weights: tuple | None = traced(
-        None, doc="mix: relative frequency of each scenario of env.mix_scenarios, in its order (None: equal)")
+        None, doc="mix: relative frequency of each scenario of env.mix_scenarios, in its order (None: equal)"
+    )
     dt: float = traced(0.25, low=MIN_DT, high=1.0, doc="seconds per step")
-    time_limit: float = traced(50.0, low=0.0, high=MAX_EPISODE_SECONDS, low_inclusive=False,
-                               doc="seconds; reaching it truncates")
+    time_limit: float = traced(
+        50.0, low=0.0, high=MAX_EPISODE_SECONDS, low_inclusive=False, doc="seconds; reaching it truncates"
+    )
     arena_size: float = traced(6.0, low=0.0, low_inclusive=False, doc="robot start/goal ~ U(-a, a)^2")
     min_start_goal_dist: float = traced(8.0, low=0.0)
     circle_radius: float = traced(6.0 * math.sqrt(2.0), low=0.0, low_inclusive=False)
@@ -191,8 +229,9 @@ class EnvConfig:
     spawn_clearance: float = traced(0.5, low=0.0, doc="extra gap between spawned agents")
     robot_radius: float = traced(0.3, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False)
     robot_v_max: float = traced(1.0, low=0.0, low_inclusive=False)
-    goal_tolerance: float = traced(0.3, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False,
-                                   doc="goal reached within this distance")
+    goal_tolerance: float = traced(
+        0.3, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False, doc="goal reached within this distance"
+    )
     human_radius_min: float = traced(0.3, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False)
     human_radius_max: float = traced(0.5, low=0.0, high=MAX_BODY_RADIUS, low_inclusive=False)
     human_v_pref_min: float = traced(0.5, low=0.0, low_inclusive=False)
@@ -207,8 +246,9 @@ class EnvConfig:
     )
     orca_neighbor_dist_max: float = traced(10.0, low=0.0, low_inclusive=False, doc="min = max: a fixed distance")
     orca_safety_space: float = traced(0.15, low=0.0)
-    orca_time_horizon_obst: float = traced(5.0, low=0.0, low_inclusive=False,
-                                           doc="seconds of safety from static obstacles (RVO2's timeHorizonObst)")
+    orca_time_horizon_obst: float = traced(
+        5.0, low=0.0, low_inclusive=False, doc="seconds of safety from static obstacles (RVO2's timeHorizonObst)"
+    )
     sf_a: float = traced(2.0, low=0.0)
     sf_b: float = traced(1.0, low=0.0, low_inclusive=False)
     sf_ki: float = traced(1.0, low=0.0)
@@ -229,24 +269,33 @@ class EnvConfig:
         if self.scenario_weights is not None:
             weights, names = self.scenario_weights, self.drawn_scenarios
             if isinstance(weights, (str, bytes)) or not hasattr(weights, "__iter__"):
-                raise ConfigError(f"env.scenario_weights = {weights!r} must be a list of {len(names)} numbers "
-                                  f"(one per scenario of the mix: {', '.join(names)})")
-            object.__setattr__(self, "scenario_weights",
-                               tuple(_coerce(w, 0.0, f"env.scenario_weights[{i}]") for i, w in enumerate(weights)))
+                raise ConfigError(
+                    f"env.scenario_weights = {weights!r} must be a list of {len(names)} numbers "
+                    f"(one per scenario of the mix: {', '.join(names)})"
+                )
+            object.__setattr__(
+                self,
+                "scenario_weights",
+                tuple(_coerce(w, 0.0, f"env.scenario_weights[{i}]") for i, w in enumerate(weights)),
+            )
         check_fields(self, "env")
         check_env_relations({n: self.resolved(n) for n in traced_names(EnvConfig)}, self.drawn_scenarios)
         hi = self.resolved("active_humans_max")
         if hi > self.num_humans:
-            raise ConfigError(f"env.active_humans_max = {hi} must be <= env.num_humans = {self.num_humans} "
-                              "(the capacity: humans are drawn from its slots)")
+            raise ConfigError(
+                f"env.active_humans_max = {hi} must be <= env.num_humans = {self.num_humans} "
+                "(the capacity: humans are drawn from its slots)"
+            )
         if self.num_humans == 0 and self.predictor != "none":
             raise ConfigError(
                 f"env.predictor = {self.predictor!r} needs humans to predict, but env.num_humans = 0; "
                 "use predictor: none (or num_humans >= 1)"
             )
         if self.predictor == "gst" and self.pred_horizon != 5:
-            raise ConfigError(f"env.pred_horizon = {self.pred_horizon} must be 5 with env.predictor = 'gst' "
-                              "(the learned model predicts 5 steps)")
+            raise ConfigError(
+                f"env.pred_horizon = {self.pred_horizon} must be 5 with env.predictor = 'gst' "
+                "(the learned model predicts 5 steps)"
+            )
 
     def resolved(self, name: str):
         """A traced field's value as `EnvParams` carries it (the active-human bounds default to the capacity)."""
@@ -290,11 +339,11 @@ class EnvConfig:
         return self.predictor != "none"
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> "EnvConfig":
+    def from_dict(cls, data: Mapping[str, Any] | None) -> EnvConfig:
         return from_dict(cls, data, "env")
 
     @classmethod
-    def from_yaml(cls, path) -> "EnvConfig":
+    def from_yaml(cls, path) -> EnvConfig:
         data = load_yaml(path)
         return cls.from_dict(data.get("env", data))
 
@@ -322,17 +371,26 @@ def _segments_intersect_np(a, b, c, d) -> np.ndarray:
     """Whether closed segments a-b and c-d intersect (touching included); arrays of shape (..., 2), float64."""
 
     def orient(p, q, r):
-        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
-                       - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+        return np.sign(
+            (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+        )
 
     def on_segment(p, q, r):  # r collinear with p-q: within its bounding box
-        return ((np.minimum(p[..., 0], q[..., 0]) <= r[..., 0]) & (r[..., 0] <= np.maximum(p[..., 0], q[..., 0]))
-                & (np.minimum(p[..., 1], q[..., 1]) <= r[..., 1]) & (r[..., 1] <= np.maximum(p[..., 1], q[..., 1])))
+        return (
+            (np.minimum(p[..., 0], q[..., 0]) <= r[..., 0])
+            & (r[..., 0] <= np.maximum(p[..., 0], q[..., 0]))
+            & (np.minimum(p[..., 1], q[..., 1]) <= r[..., 1])
+            & (r[..., 1] <= np.maximum(p[..., 1], q[..., 1]))
+        )
 
     o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
     proper = (o1 * o2 < 0) & (o3 * o4 < 0)
-    touch = (((o1 == 0) & on_segment(a, b, c)) | ((o2 == 0) & on_segment(a, b, d))
-             | ((o3 == 0) & on_segment(c, d, a)) | ((o4 == 0) & on_segment(c, d, b)))
+    touch = (
+        ((o1 == 0) & on_segment(a, b, c))
+        | ((o2 == 0) & on_segment(a, b, d))
+        | ((o3 == 0) & on_segment(c, d, a))
+        | ((o4 == 0) & on_segment(c, d, b))
+    )
     return proper | touch
 
 
@@ -345,8 +403,7 @@ def check_polygons(polygons, field: str) -> tuple:
     vertices that encloses no area, and a self-intersecting polygon.
     """
     if polygons is None or isinstance(polygons, (str, bytes, dict)) or not hasattr(polygons, "__len__"):
-        raise ConfigError(f"{field} = {_describe(polygons)} must be a list of polygons, each a list of [x, y] "
-                          "vertices")
+        raise ConfigError(f"{field} = {_describe(polygons)} must be a list of polygons, each a list of [x, y] vertices")
     checked = []
     for i, polygon in enumerate(polygons):
         where = f"{field}[{i}] = {_describe(polygon)}"
@@ -355,8 +412,12 @@ def check_polygons(polygons, field: str) -> tuple:
             rows = [list(vertex) for vertex in polygon]
         except TypeError:
             rows = None
-        if rows is None or isinstance(polygon, (str, bytes, dict)) or not all(
-            len(r) == 2 and all(isinstance(c, numbers.Real) and not isinstance(c, bool) for c in r) for r in rows
+        if (
+            rows is None
+            or isinstance(polygon, (str, bytes, dict))
+            or not all(
+                len(r) == 2 and all(isinstance(c, numbers.Real) and not isinstance(c, bool) for c in r) for r in rows
+            )
         ):
             raise ConfigError(f"{where} must be a list of [x, y] vertices, each a pair of numbers")
         v = np.array(rows, dtype=np.float64).reshape(-1, 2)
@@ -368,24 +429,30 @@ def check_polygons(polygons, field: str) -> tuple:
         nxt = np.roll(v, -1, axis=0)
         edge_len = np.hypot(*(nxt - v).T)
         if np.any(edge_len[: n if n >= 3 else 1] == 0.0):
-            raise ConfigError(f"{where} has a zero-length edge (repeated consecutive vertices, the last and the "
-                              "first included); give each vertex once")
+            raise ConfigError(
+                f"{where} has a zero-length edge (repeated consecutive vertices, the last and the "
+                "first included); give each vertex once"
+            )
         if n >= 3:
             # Every pair of edges must meet only where they share a vertex. Adjacent edges share one; they
             # intersect elsewhere only by folding back over each other, caught by the collinear test below.
             j = np.arange(n)
             hit = _segments_intersect_np(v[:, None], nxt[:, None], v[None, :], nxt[None, :])
-            adjacent = (j[:, None] == j[None, :]) | ((j[:, None] + 1) % n == j[None, :]) \
-                | ((j[None, :] + 1) % n == j[:, None])
+            adjacent = (
+                (j[:, None] == j[None, :]) | ((j[:, None] + 1) % n == j[None, :]) | ((j[None, :] + 1) % n == j[:, None])
+            )
             e, f = nxt - v, np.roll(nxt - v, -1, axis=0)  # edge k and edge k + 1, which share vertex k + 1
             folds = (e[:, 0] * f[:, 1] - e[:, 1] * f[:, 0] == 0) & (e[:, 0] * f[:, 0] + e[:, 1] * f[:, 1] < 0)
             if np.any(hit & ~adjacent) or np.any(folds):
-                raise ConfigError(f"{where} intersects itself; allowed: simple polygons (edges meet only at "
-                                  "shared vertices)")
+                raise ConfigError(
+                    f"{where} intersects itself; allowed: simple polygons (edges meet only at shared vertices)"
+                )
             area = 0.5 * np.sum(v[:, 0] * nxt[:, 1] - nxt[:, 0] * v[:, 1])
             if area < 0:
-                raise ConfigError(f"{where} is clockwise (signed area {area:g}); give the vertices "
-                                  "counter-clockwise (interior on the left of each edge, as RVO2)")
+                raise ConfigError(
+                    f"{where} is clockwise (signed area {area:g}); give the vertices "
+                    "counter-clockwise (interior on the left of each edge, as RVO2)"
+                )
             if area == 0:
                 raise ConfigError(f"{where} encloses no area (collinear vertices); use 2 vertices for a wall")
         checked.append(tuple((float(x), float(y)) for x, y in v))
@@ -395,18 +462,27 @@ def check_polygons(polygons, field: str) -> tuple:
 def check_env_relations(values: Mapping[str, Any], drawn_scenarios=None) -> None:
     """The constraints between numeric env fields, on a config's values or on concrete `EnvParams` leaves (arrays:
     every element). `drawn_scenarios`: the env's scenarios (the length of scenario_weights; None: not checked)."""
-    for lo, hi in (("human_radius_min", "human_radius_max"), ("human_v_pref_min", "human_v_pref_max"),
-                   ("orca_neighbor_dist_min", "orca_neighbor_dist_max"),
-                   ("active_humans_min", "active_humans_max")):
+    for lo, hi in (
+        ("human_radius_min", "human_radius_max"),
+        ("human_v_pref_min", "human_v_pref_max"),
+        ("orca_neighbor_dist_min", "orca_neighbor_dist_max"),
+        ("active_humans_min", "active_humans_max"),
+    ):
         hit = first_where(np.asarray(values[lo]) > np.asarray(values[hi]), values[lo], values[hi])
         if hit:
             raise ConfigError(f"env.{lo} = {hit[0]!s} must be <= env.{hi} = {hit[1]!s}")
     diagonal = 2.0 * np.sqrt(2.0) * np.asarray(values["arena_size"])
-    hit = first_where(np.asarray(values["min_start_goal_dist"]) >= diagonal, values["min_start_goal_dist"],
-                      values["arena_size"], diagonal)
+    hit = first_where(
+        np.asarray(values["min_start_goal_dist"]) >= diagonal,
+        values["min_start_goal_dist"],
+        values["arena_size"],
+        diagonal,
+    )
     if hit:
-        raise ConfigError(f"env.min_start_goal_dist = {hit[0]!s} cannot be met in an arena of half-size {hit[1]!s}; "
-                          f"allowed: < {hit[2]:.3f}")
+        raise ConfigError(
+            f"env.min_start_goal_dist = {hit[0]!s} cannot be met in an arena of half-size {hit[1]!s}; "
+            f"allowed: < {hit[2]:.3f}"
+        )
     hit = first_where(np.asarray(values["time_limit"]) < np.asarray(values["dt"]), values["time_limit"], values["dt"])
     if hit:
         raise ConfigError(f"env.time_limit = {hit[0]!s} must be >= env.dt = {hit[1]!s}")
@@ -419,13 +495,15 @@ def check_scenario_weights(weights, drawn_scenarios=None) -> None:
     w = np.asarray(weights, np.float64)
     names = drawn_scenarios or ()
     count = len(names) if drawn_scenarios is not None else (w.shape[-1] if w.ndim else 1)
-    allowed = (f"allowed: {count} non-negative numbers, not all zero, one per scenario of the mix"
-               + (f" ({', '.join(names)})" if names else ""))
+    allowed = f"allowed: {count} non-negative numbers, not all zero, one per scenario of the mix" + (
+        f" ({', '.join(names)})" if names else ""
+    )
     if w.ndim == 0 or w.shape[-1] != count:
         raise ConfigError(f"env.scenario_weights has {1 if w.ndim == 0 else w.shape[-1]} value(s); {allowed}")
     if not np.all(np.isfinite(w)) or np.any(w < 0):
-        raise ConfigError(f"env.scenario_weights = {np.round(w, 6).tolist()} has a negative or non-finite weight; "
-                          f"{allowed}")
+        raise ConfigError(
+            f"env.scenario_weights = {np.round(w, 6).tolist()} has a negative or non-finite weight; {allowed}"
+        )
     if np.any(w.sum(-1) <= 0):
         raise ConfigError(f"env.scenario_weights = {np.round(w, 6).tolist()} are all zero; {allowed}")
 
@@ -468,18 +546,30 @@ class PPOConfig:
     total_steps: int = spec(5_990_400, low=1, high=MAX_TOTAL_STEPS, doc="environment steps of the whole run")
     update_epochs: int = spec(2, low=1, high=1000, doc="epochs over each rollout (reference: 5)")
     num_minibatches: int = spec(8, low=1, high=65536, doc="minibatches per epoch (split over envs, not time)")
-    num_shards: int = spec(2, low=1, high=1024,
-                           doc="the envs are split into this many equal shards, each rolled out and cut into "
-                               "minibatches on its own; every minibatch gradient is averaged over the shards. "
-                               "Shards run on separate devices where there are enough (tgrf-train gives the CPU "
-                               "one device per shard), else vmapped on one. 1: no sharding")
-    microbatch_envs: int = spec(16, low=0, high=65536,
-                                doc="envs per gradient slice: each minibatch's gradient is accumulated over equal "
-                                    "slices of at most this many envs (the same update up to float rounding; small "
-                                    "slices keep the learner's activations in cache); 0: the whole minibatch at once")
-    reset_ratio: int = spec(8, low=1, high=65536,
-                            doc="num_envs / reset_ratio fresh episodes are sampled per rollout step for the envs "
-                                "that finished in it (1: one per env, as env.step; see CrowdNavEnv.step_batch)")
+    num_shards: int = spec(
+        2,
+        low=1,
+        high=1024,
+        doc="the envs are split into this many equal shards, each rolled out and cut into "
+        "minibatches on its own; every minibatch gradient is averaged over the shards. "
+        "Shards run on separate devices where there are enough (tgrf-train gives the CPU "
+        "one device per shard), else vmapped on one. 1: no sharding",
+    )
+    microbatch_envs: int = spec(
+        16,
+        low=0,
+        high=65536,
+        doc="envs per gradient slice: each minibatch's gradient is accumulated over equal "
+        "slices of at most this many envs (the same update up to float rounding; small "
+        "slices keep the learner's activations in cache); 0: the whole minibatch at once",
+    )
+    reset_ratio: int = spec(
+        8,
+        low=1,
+        high=65536,
+        doc="num_envs / reset_ratio fresh episodes are sampled per rollout step for the envs "
+        "that finished in it (1: one per env, as env.step; see CrowdNavEnv.step_batch)",
+    )
     anneal_lr: bool = spec(True, doc="linear learning-rate decay to 0 over the run (reference: off)")
     clip_value: bool = spec(True, doc="clip the value update like the policy ratio (reference: on)")
     norm_adv: bool = spec(True, doc="normalise advantages over the whole rollout batch")
@@ -510,7 +600,8 @@ class PPOConfig:
             raise ConfigError(
                 f"ppo.total_steps = {self.total_steps} is {self.num_updates:,} updates of ppo.num_envs x "
                 f"ppo.num_steps = {self.batch_size} steps; allowed: <= {MAX_UPDATES * self.batch_size:,} "
-                f"({MAX_UPDATES:,} updates)")
+                f"({MAX_UPDATES:,} updates)"
+            )
 
     @property
     def batch_size(self) -> int:
@@ -527,8 +618,11 @@ class PPOConfig:
         minibatch_envs = self.shard_envs // self.num_minibatches
         if self.microbatch_envs == 0:
             return 1
-        return next(n for n in range(1, minibatch_envs + 1)
-                    if minibatch_envs % n == 0 and minibatch_envs // n <= self.microbatch_envs)
+        return next(
+            n
+            for n in range(1, minibatch_envs + 1)
+            if minibatch_envs % n == 0 and minibatch_envs // n <= self.microbatch_envs
+        )
 
     @property
     def reset_slots(self) -> int:
@@ -545,8 +639,11 @@ class PPOConfig:
 class NetworkConfig:
     name: str = spec("hh_attn", choices=NETWORK_NAMES)
     size: str = spec("small", choices=NETWORK_SIZES)
-    frame: str = spec("goal", choices=FRAMES,
-                      doc="'world': the reference's inputs; 'goal': robot-centred frame with x towards the goal")
+    frame: str = spec(
+        "goal",
+        choices=FRAMES,
+        doc="'world': the reference's inputs; 'goal': robot-centred frame with x towards the goal",
+    )
     init_log_std: float = spec(-0.5, low=-5.0, high=2.0, doc="initial log-std of the Gaussian policy (reference: 0)")
 
     def __post_init__(self):
@@ -564,17 +661,25 @@ class RunConfig:
     keep_checkpoints: int = spec(3, low=1, doc="checkpoints kept on disk")
     eval_episodes: int = spec(500, low=0, high=MAX_EPISODES, doc="episodes of the final evaluation (0: skip)")
     eval_seed: int = spec(0, low=0, high=2**31 - 1)
-    eval_every: int = spec(0, low=0, doc="updates between test evaluations during training (learning curves under "
-                           "test conditions, eval_curve.csv); 0: none")
+    eval_every: int = spec(
+        0,
+        low=0,
+        doc="updates between test evaluations during training (learning curves under "
+        "test conditions, eval_curve.csv); 0: none",
+    )
     curve_episodes: int = spec(100, low=1, high=100_000, doc="test episodes of each evaluation during training")
 
     def __post_init__(self):
         check_fields(self, "run")
         # the name becomes part of directory names (runs/<stamp>_<name>, a sweep's runs/<name>_p000_...)
         if not 1 <= len(self.name) <= MAX_NAME_LENGTH or not _NAME.fullmatch(self.name) or ".." in self.name:
-            shown = repr(self.name) if len(self.name) <= 60 else repr(self.name[:60]) + f"... ({len(self.name):,} chars)"
-            raise ConfigError(f"run.name = {shown} is not allowed; allowed: 1 to {MAX_NAME_LENGTH} letters, digits "
-                              "and '_', '-', '.', '=', '+', without '..' (no path separators)")
+            shown = (
+                repr(self.name) if len(self.name) <= 60 else repr(self.name[:60]) + f"... ({len(self.name):,} chars)"
+            )
+            raise ConfigError(
+                f"run.name = {shown} is not allowed; allowed: 1 to {MAX_NAME_LENGTH} letters, digits "
+                "and '_', '-', '.', '=', '+', without '..' (no path separators)"
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -590,7 +695,7 @@ class TrainConfig:
     run: RunConfig = dataclasses.field(default_factory=RunConfig)
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> "TrainConfig":
+    def from_dict(cls, data: Mapping[str, Any] | None) -> TrainConfig:
         data = dict(data or {})
         valid = [f.name for f in dataclasses.fields(cls)]
         for key, value in data.items():
@@ -601,7 +706,7 @@ class TrainConfig:
         return from_dict(cls, data, "")
 
     @classmethod
-    def from_yaml(cls, path, overrides: list[str] | None = None) -> "TrainConfig":
+    def from_yaml(cls, path, overrides: list[str] | None = None) -> TrainConfig:
         return cls.from_dict(apply_overrides(load_yaml(path), overrides or []))
 
     def to_dict(self) -> dict:
@@ -620,12 +725,19 @@ class TrainConfig:
 
 def config_fields() -> list[str]:
     """Every dotted field of a TrainConfig."""
-    return [f"{f.name}.{g.name}" for f in dataclasses.fields(TrainConfig)
-            for g in dataclasses.fields(type(f.default_factory()))]
+    return [
+        f"{f.name}.{g.name}"
+        for f in dataclasses.fields(TrainConfig)
+        for g in dataclasses.fields(type(f.default_factory()))
+    ]
 
 
 def griddable_fields() -> list[str]:
     """Dotted fields that are traced (leaves of `HParams`), hence griddable: runs that differ only in these share
     one compiled program. reward.scheme is one too: a scheme is only a set of reward values."""
-    return ([f"ppo.{n}" for n in traced_names(PPOConfig)] + [f"env.{n}" for n in traced_names(EnvConfig)]
-            + ["reward.scheme"] + [f"reward.{n}" for n in traced_names(RewardConfig)])
+    return (
+        [f"ppo.{n}" for n in traced_names(PPOConfig)]
+        + [f"env.{n}" for n in traced_names(EnvConfig)]
+        + ["reward.scheme"]
+        + [f"reward.{n}" for n in traced_names(RewardConfig)]
+    )

@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -89,11 +89,28 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
     izeros = jnp.zeros(n_episodes, jnp.int32)
     inf = jnp.full(n_episodes, jnp.inf, jnp.float32)
     stats = EpisodeStats(
-        zeros, zeros, izeros, zeros, zeros, izeros, zeros, izeros, zeros,
-        start_goal_dist=jnp.linalg.norm(state.robot.goal - state.robot.pos, axis=-1), min_dist=inf,
-        personal_steps=izeros, speed_sum=zeros, speed_max=zeros, accel_sum=zeros, jerk_sum=zeros, turn_sum=zeros,
-        min_ttc=inf, stall_steps=izeros, num_humans=jnp.sum(state.humans.active, -1, dtype=jnp.int32),
-        min_dist_obstacle=inf, obstacles_dropped=state.obstacles_dropped,
+        zeros,
+        zeros,
+        izeros,
+        zeros,
+        zeros,
+        izeros,
+        zeros,
+        izeros,
+        zeros,
+        start_goal_dist=jnp.linalg.norm(state.robot.goal - state.robot.pos, axis=-1),
+        min_dist=inf,
+        personal_steps=izeros,
+        speed_sum=zeros,
+        speed_max=zeros,
+        accel_sum=zeros,
+        jerk_sum=zeros,
+        turn_sum=zeros,
+        min_ttc=inf,
+        stall_steps=izeros,
+        num_humans=jnp.sum(state.humans.active, -1, dtype=jnp.int32),
+        min_dist_obstacle=inf,
+        obstacles_dropped=state.obstacles_dropped,
     )
     alive = jnp.ones(n_episodes, bool)
     carry = policy.initialize_carry(n_episodes)
@@ -110,8 +127,7 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
         t, key, obs, state, carry, alive, stats, motion = loop
         key, k_act, k_step = jax.random.split(key, 3)
         carry, action = policy.act(carry, obs, jnp.equal(t, 0) & alive, k_act)
-        obs, state, reward, terminated, truncated, info = step_all(jax.random.split(k_step, n_episodes), state,
-                                                                   action)
+        obs, state, reward, terminated, truncated, info = step_all(jax.random.split(k_step, n_episodes), state, action)
         done = terminated | truncated
         fut = info.intrusion_future & alive
         disc = info.intrusion_disc & alive
@@ -123,8 +139,15 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
         turning = (speed > _MOVING) & (prev_speed > _MOVING)
         cos = jnp.sum(vel * prev_vel, -1) / jnp.maximum(speed * prev_speed, 1e-12)
         turn = jnp.where(turning, jnp.arccos(jnp.clip(cos, -1.0, 1.0)), 0.0)
-        ttc = time_to_collision(state.robot.pos, vel, params.robot_radius, state.humans.pos, state.humans.vel,
-                                state.humans.radius, state.humans.active)
+        ttc = time_to_collision(
+            state.robot.pos,
+            vel,
+            params.robot_radius,
+            state.humans.pos,
+            state.humans.vel,
+            state.humans.radius,
+            state.humans.active,
+        )
         add = lambda total, x: total + jnp.where(alive, x, 0)  # noqa: E731
         stats = EpisodeStats(
             outcome=jnp.where(alive & done, info.outcome, stats.outcome),
@@ -168,6 +191,7 @@ _run_episodes_traced = jax.jit(run_episodes, static_argnums=(0, 3))  # a policy 
 def _run_episodes_jit(env, policy, key, n_episodes, params):
     run = _run_episodes_traced if hasattr(policy, "tree_flatten") else _run_episodes_static
     return run(env, policy, key, n_episodes, params)
+
 
 # Episodes evaluated at once by default: enough to fill any CPU or GPU, small enough (a few hundred MB of
 # state for 20 humans) that a million-episode evaluation runs in bounded memory.
@@ -351,8 +375,9 @@ def format_table(results: dict[str, EvalResult], all_metrics: bool = False) -> s
     return "\n".join(rows)
 
 
-def evaluate_params(config: TrainConfig, params, episodes: int, seed: int, baselines=(), net=None,
-                    progress=None) -> dict:
+def evaluate_params(
+    config: TrainConfig, params, episodes: int, seed: int, baselines=(), net=None, progress=None
+) -> dict:
     """The deterministic policy of network `params` and optional baseline robots on `config`'s env and reward, as
     an eval.json payload. `net` (default: built from the config) keys the compiled evaluation: pass the same one
     to reuse it. `progress(name)` (optional) gives each policy's `evaluate` progress callback."""
@@ -364,18 +389,23 @@ def evaluate_params(config: TrainConfig, params, episodes: int, seed: int, basel
     results = {"learned": evaluate(env, LearnedPolicy(net, params), key, episodes, progress=track("learned"))}
     for name in baselines:
         results[name] = evaluate(env, baseline(name), key, episodes, progress=track(name))
-    return {"env": repr(env), "episodes": episodes, "seed": seed,
-            "results": {k: v.to_dict() for k, v in results.items()}}
+    return {
+        "env": repr(env),
+        "episodes": episodes,
+        "seed": seed,
+        "results": {k: v.to_dict() for k, v in results.items()},
+    }
 
 
-def evaluate_state(config: TrainConfig, state, episodes: int, seed: int, baselines=(), net=None,
-                   progress=None) -> dict:
+def evaluate_state(config: TrainConfig, state, episodes: int, seed: int, baselines=(), net=None, progress=None) -> dict:
     """`evaluate_params` of a training state's parameters."""
     return evaluate_params(config, state.params, episodes, seed, baselines, net, progress)
 
 
 def format_eval(payload: dict, all_metrics: bool = False) -> str:
     """The Markdown table of an eval.json payload (older payloads lack the wider metrics: shown as n/a)."""
-    results = {k: EvalResult(**{f: (float("nan") if v is None else v) for f, v in d.items()})
-               for k, d in payload["results"].items()}
+    results = {
+        k: EvalResult(**{f: (float("nan") if v is None else v) for f, v in d.items()})
+        for k, d in payload["results"].items()
+    }
     return format_table(results, all_metrics)

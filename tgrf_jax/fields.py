@@ -14,7 +14,8 @@ import difflib
 import math
 import pathlib
 import re
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import yaml
@@ -24,14 +25,18 @@ class ConfigError(ValueError):
     """A configuration value or key is invalid; the message names the field and what is allowed."""
 
 
-def spec(default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc="",
-         traced=False):
+def spec(default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc="", traced=False):
     """A static dataclass field with its allowed range or choices (`traced=True`: see `traced`)."""
     return dataclasses.field(
         default=default,
         metadata=dict(
-            low=low, high=high, low_inclusive=low_inclusive, high_inclusive=high_inclusive,
-            choices=choices, doc=doc, traced=traced,
+            low=low,
+            high=high,
+            low_inclusive=low_inclusive,
+            high_inclusive=high_inclusive,
+            choices=choices,
+            doc=doc,
+            traced=traced,
         ),
     )
 
@@ -56,8 +61,7 @@ def traced_pytree(name: str, config_cls, *, first=(), last=(), base=None, module
     annotations = {f[0]: f[1] for f in first}
     annotations.update({n: jnp.ndarray for n in traced_names(config_cls)})
     annotations.update({f[0]: f[1] for f in last})
-    namespace = {"__annotations__": annotations, "__module__": module or __name__, "__qualname__": name,
-                 "__doc__": doc}
+    namespace = {"__annotations__": annotations, "__module__": module or __name__, "__qualname__": name, "__doc__": doc}
     namespace.update({f[0]: f[2] for f in last if len(f) == 3})  # (name, type, default)
     return struct.dataclass(type(name, (base,) if base else (), namespace))
 
@@ -97,8 +101,10 @@ _EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
 
 def _number_text(value: str, name: str, kind: str) -> float:
     if not _EXPONENT.fullmatch(value.strip()):
-        raise ConfigError(f"{name} = {_show(value)} must be {kind}" + (
-            " (it is quoted text; give the number without quotes)" if _looks_numeric(value) else ""))
+        raise ConfigError(
+            f"{name} = {_show(value)} must be {kind}"
+            + (" (it is quoted text; give the number without quotes)" if _looks_numeric(value) else "")
+        )
     return float(value)
 
 
@@ -182,8 +188,9 @@ def concrete(value, name: str) -> np.ndarray:
         a = None
     if a is None or a.dtype.kind not in "fiu":
         kind = type(value).__name__ if a is None or a.dtype == object or not a.shape else f"array of {a.dtype}"
-        raise ConfigError(f"{name} = {_show(value)} ({kind}) must be a number, or an array of numbers for a batch "
-                          "of params")
+        raise ConfigError(
+            f"{name} = {_show(value)} ({kind}) must be a number, or an array of numbers for a batch of params"
+        )
     return a
 
 
@@ -266,8 +273,11 @@ class _UniqueKeyLoader(yaml.SafeLoader):
             key = self.construct_object(key_node, deep=deep)
             if key in seen:
                 raise yaml.constructor.ConstructorError(
-                    "while constructing a mapping", node.start_mark,
-                    f"found duplicate key {key!r} (first given on line {seen[key] + 1})", key_node.start_mark)
+                    "while constructing a mapping",
+                    node.start_mark,
+                    f"found duplicate key {key!r} (first given on line {seen[key] + 1})",
+                    key_node.start_mark,
+                )
             seen[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep=deep)
 

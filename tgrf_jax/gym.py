@@ -61,8 +61,14 @@ def _flat(obs) -> jnp.ndarray:
 
 
 def _info(info) -> dict[str, Any]:
-    return {"outcome": info.outcome, "time": info.time, "dmin": info.dmin, "num_visible": info.num_visible,
-            "intrusion_disc": info.intrusion_disc, "path_increment": info.path_increment}
+    return {
+        "outcome": info.outcome,
+        "time": info.time,
+        "dmin": info.dmin,
+        "num_visible": info.num_visible,
+        "intrusion_disc": info.intrusion_disc,
+        "path_increment": info.path_increment,
+    }
 
 
 def _spaces(env: CrowdNavEnv, params):
@@ -182,7 +188,8 @@ class CrowdNavVectorEnv(VectorEnv):
             raise ValueError(f"actions must have shape ({self.num_envs}, 2), got {actions.shape}")
         self._key, k = jax.random.split(self._key)
         obs, self._state, reward, terminated, truncated, final_obs, info = jax.device_get(
-            self._step(k, self._state, actions))
+            self._step(k, self._state, actions)
+        )
         infos: dict[str, Any] = dict(info)
         done = terminated | truncated
         if done.any():
@@ -191,8 +198,10 @@ class CrowdNavVectorEnv(VectorEnv):
             for i in np.flatnonzero(done):
                 last[i] = final_obs[i]
             infos["final_obs"], infos["_final_obs"] = last, done
-            infos["final_info"] = {**{k: np.where(done, v, np.zeros_like(v)) for k, v in info.items()},
-                                   **{f"_{k}": done for k in info}}
+            infos["final_info"] = {
+                **{k: np.where(done, v, np.zeros_like(v)) for k, v in info.items()},
+                **{f"_{k}": done for k in info},
+            }
             infos["_final_info"] = done
         return obs, reward.astype(np.float32), terminated, truncated, infos
 

@@ -23,8 +23,14 @@ from tgrf_jax.config import (
 def add_config_args(parser: argparse.ArgumentParser, config_help: str, *, run_dir: bool = False) -> None:
     """The positional config (or, with `run_dir`, RUN_DIR|CONFIG) argument and the repeatable `--set`."""
     parser.add_argument("config", nargs="?", metavar="RUN_DIR|CONFIG" if run_dir else "CONFIG", help=config_help)
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value, e.g. --set ppo.lr=1e-4 --set env.human_policy=social_force")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set ppo.lr=1e-4 --set env.human_policy=social_force",
+    )
 
 
 def train_config(path: str | None, overrides: list[str]) -> TrainConfig:
@@ -46,9 +52,12 @@ class Scenario:
 
 
 def add_pretrained_arg(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--pretrained", metavar="NAME|DIR",
-                        help="a trained policy shipped with tgrf-jax (see tgrf_jax.pretrained.available()) or "
-                        "exported to a directory, played on its own env/reward config")
+    parser.add_argument(
+        "--pretrained",
+        metavar="NAME|DIR",
+        help="a trained policy shipped with tgrf-jax (see tgrf_jax.pretrained.available()) or "
+        "exported to a directory, played on its own env/reward config",
+    )
 
 
 def scenario(source: str | None, overrides: list[str], tool: str, pretrained: str | None = None) -> Scenario:
@@ -79,8 +88,10 @@ def scenario(source: str | None, overrides: list[str], tool: str, pretrained: st
     sections = [f.name for f in dataclasses.fields(TrainConfig)]
     unknown = set(data) - set(sections)
     if unknown:
-        raise ConfigError(f"unknown config section(s) {sorted(unknown)} in {source!r}; {tool} reads env and reward "
-                          f"(of a tgrf-train config: {', '.join(sections)})")
+        raise ConfigError(
+            f"unknown config section(s) {sorted(unknown)} in {source!r}; {tool} reads env and reward "
+            f"(of a tgrf-train config: {', '.join(sections)})"
+        )
     if set(data) - {"env", "reward"}:
         config = TrainConfig.from_dict(data)  # a tgrf-train config: every section checked, env / reward played
         return Scenario(config.env, config.reward)
@@ -108,11 +119,16 @@ def check_observation_fits(scene: Scenario) -> None:
 
     before, after = shapes(trained.env), shapes(scene.env)
     if before != after:
-        changed = [f"env.{f}: {getattr(trained.env, f)!r} -> {getattr(scene.env, f)!r}"
-                   for f in trained.env.__dataclass_fields__ if getattr(trained.env, f) != getattr(scene.env, f)]
-        raise ConfigError(f"the policy in {str(scene.run_dir)!r} was trained on observations of other shapes than "
-                          f"these overrides give ({'; '.join(changed)}); with a RUN_DIR only settings that keep "
-                          "the observation's shapes can change (e.g. env.human_policy, env.dt, reward.*)")
+        changed = [
+            f"env.{f}: {getattr(trained.env, f)!r} -> {getattr(scene.env, f)!r}"
+            for f in trained.env.__dataclass_fields__
+            if getattr(trained.env, f) != getattr(scene.env, f)
+        ]
+        raise ConfigError(
+            f"the policy in {str(scene.run_dir)!r} was trained on observations of other shapes than "
+            f"these overrides give ({'; '.join(changed)}); with a RUN_DIR only settings that keep "
+            "the observation's shapes can change (e.g. env.human_policy, env.dt, reward.*)"
+        )
 
 
 def progress_line(message: str) -> None:
@@ -148,8 +164,10 @@ def check_jax() -> None:
     import jax
 
     if jax.config.jax_enable_x64:
-        raise ConfigError("JAX_ENABLE_X64 is on, but tgrf-jax computes in float32 and int32 (its programs and "
-                          "checkpoints); unset JAX_ENABLE_X64")
+        raise ConfigError(
+            "JAX_ENABLE_X64 is on, but tgrf-jax computes in float32 and int32 (its programs and "
+            "checkpoints); unset JAX_ENABLE_X64"
+        )
 
 
 def check_seed(seed: int, flag: str = "--seed") -> None:
@@ -176,8 +194,9 @@ def check_writable(path, flag: str, *, directory: bool) -> None:
         with tempfile.NamedTemporaryFile(dir=existing):
             pass
     except OSError as e:
-        raise ConfigError(f"{flag} {str(path)!r} is not writable: no file can be created in {str(existing)!r} "
-                          f"({e.strerror})") from None
+        raise ConfigError(
+            f"{flag} {str(path)!r} is not writable: no file can be created in {str(existing)!r} ({e.strerror})"
+        ) from None
     if not directory and path.is_file():
         try:
             with open(path, "a"):

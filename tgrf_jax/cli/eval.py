@@ -30,24 +30,39 @@ def parser() -> argparse.ArgumentParser:
         "With a RUN_DIR (from tgrf-train) the trained policy is evaluated on the run's env/reward config "
         "(plus any --policy baselines on the same scenario); otherwise the baselines on a YAML config.",
     )
-    add_config_args(p, "a tgrf-train run directory, or a YAML file with env/reward sections, such as a tgrf-train "
-                       "config (default: paper scenario)", run_dir=True)
-    p.add_argument("--policy", action="append", choices=["straight", "orca"],
-                   help="baseline robot policy (repeatable; default without RUN_DIR: both)")
-    p.add_argument("--episodes", type=int, default=500,
-                   help="distinct episodes, played in batches of 1000 (default 500)")
+    add_config_args(
+        p,
+        "a tgrf-train run directory, or a YAML file with env/reward sections, such as a tgrf-train "
+        "config (default: paper scenario)",
+        run_dir=True,
+    )
+    p.add_argument(
+        "--policy",
+        action="append",
+        choices=["straight", "orca"],
+        help="baseline robot policy (repeatable; default without RUN_DIR: both)",
+    )
+    p.add_argument(
+        "--episodes", type=int, default=500, help="distinct episodes, played in batches of 1000 (default 500)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to evaluate; default: latest")
     add_pretrained_arg(p)
     p.add_argument("--out", help="write the metrics as JSON to this file")
-    p.add_argument("--suite", metavar="DIR",
-                   help="benchmark: play the policy (RUN_DIR, --pretrained, or the --policy baselines; default orca) "
-                        "on every scenario x 5, 10, 20, 30 humans, --episodes each with the fixed --seed, and write "
-                        "DIR/suite.md, DIR/suite.csv and a thumbnail per scenario (docs/scenarios.md)")
-    p.add_argument("--all-metrics", action="store_true",
-                   help="print every metric (SPL, clearance, personal space, speed, acceleration, jerk, path "
-                        "irregularity, time-to-collision, time stalled; docs/metrics.md), not only the paper's; "
-                        "the JSON always holds all of them")
+    p.add_argument(
+        "--suite",
+        metavar="DIR",
+        help="benchmark: play the policy (RUN_DIR, --pretrained, or the --policy baselines; default orca) "
+        "on every scenario x 5, 10, 20, 30 humans, --episodes each with the fixed --seed, and write "
+        "DIR/suite.md, DIR/suite.csv and a thumbnail per scenario (docs/scenarios.md)",
+    )
+    p.add_argument(
+        "--all-metrics",
+        action="store_true",
+        help="print every metric (SPL, clearance, personal space, speed, acceleration, jerk, path "
+        "irregularity, time-to-collision, time stalled; docs/metrics.md), not only the paper's; "
+        "the JSON always holds all of them",
+    )
     return p
 
 
@@ -75,21 +90,28 @@ def main(argv: list[str] | None = None) -> int:
     from tgrf_jax.evaluate import evaluate_params, evaluate_state, format_eval
 
     if sc.params is not None:
-        print(f"pretrained {sc.pretrained} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}",
-              flush=True)
+        print(
+            f"pretrained {sc.pretrained} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}",
+            flush=True,
+        )
         t0 = time.perf_counter()
-        payload = evaluate_params(sc.config, sc.params, args.episodes, args.seed, baselines=args.policy or (),
-                                  progress=episode_progress)
+        payload = evaluate_params(
+            sc.config, sc.params, args.episodes, args.seed, baselines=args.policy or (), progress=episode_progress
+        )
         payload.update(pretrained=sc.pretrained)
     elif sc.run_dir is not None:
         state, status = _restore(sc, args.step, f"tgrf-eval {sc.run_dir} --step")
         if state is None:
             return status
-        print(f"{sc.run_dir}: update {int(state.update)} on {jax.devices()[0].platform}; {args.episodes} episodes, "
-              f"seed {args.seed}", flush=True)
+        print(
+            f"{sc.run_dir}: update {int(state.update)} on {jax.devices()[0].platform}; {args.episodes} episodes, "
+            f"seed {args.seed}",
+            flush=True,
+        )
         t0 = time.perf_counter()
-        payload = evaluate_state(sc.config, state, args.episodes, args.seed, baselines=args.policy or (),
-                                 progress=episode_progress)
+        payload = evaluate_state(
+            sc.config, state, args.episodes, args.seed, baselines=args.policy or (), progress=episode_progress
+        )
         payload.update(run_dir=str(sc.run_dir), update=int(state.update))
     else:
         from tgrf_jax.env import CrowdNavEnv
@@ -99,9 +121,12 @@ def main(argv: list[str] | None = None) -> int:
         env = CrowdNavEnv(sc.env, sc.reward)
         print(f"{env} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}", flush=True)
         t0 = time.perf_counter()
-        results = {name: evaluate(env, baseline(name), jax.random.key(args.seed), args.episodes,
-                                  progress=episode_progress(name))
-                   for name in args.policy or ["straight", "orca"]}
+        results = {
+            name: evaluate(
+                env, baseline(name), jax.random.key(args.seed), args.episodes, progress=episode_progress(name)
+            )
+            for name in args.policy or ["straight", "orca"]
+        }
         payload = {"env": repr(env), "seed": args.seed, "results": {k: v.to_dict() for k, v in results.items()}}
     print(f"  done in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)
     print(format_eval(payload, args.all_metrics))
@@ -150,8 +175,15 @@ def _suite(args, sc) -> int:
         config = TrainConfig(env=sc.env, reward=sc.reward)
     for name in args.policy or ([] if policies else ["orca"]):
         policies[name] = baseline(name)
-    run_suite(config, policies, args.suite, episodes=args.episodes, seed=args.seed, capacity=capacity,
-              log=lambda line: print(line, flush=True))
+    run_suite(
+        config,
+        policies,
+        args.suite,
+        episodes=args.episodes,
+        seed=args.seed,
+        capacity=capacity,
+        log=lambda line: print(line, flush=True),
+    )
     return 0
 
 

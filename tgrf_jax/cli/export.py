@@ -21,12 +21,14 @@ def parser() -> argparse.ArgumentParser:
         "--pretrained DIR and as tgrf_jax.deploy.Navigator(DIR).",
     )
     p.add_argument("run_dir", nargs="?", metavar="RUN_DIR", help="a tgrf-train run directory")
-    p.add_argument("--pretrained", metavar="NAME|DIR", help="a shipped policy (tgrf_jax.pretrained.available()) "
-                   "or a pretrained-format directory, instead of RUN_DIR")
+    p.add_argument(
+        "--pretrained",
+        metavar="NAME|DIR",
+        help="a shipped policy (tgrf_jax.pretrained.available()) or a pretrained-format directory, instead of RUN_DIR",
+    )
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to export; default: latest")
     p.add_argument("--out", required=True, metavar="DIR", help="new directory to write (an existing one is refused)")
-    p.add_argument("--format", dest="formats", action="append", choices=FORMATS,
-                   help="repeatable; default: both")
+    p.add_argument("--format", dest="formats", action="append", choices=FORMATS, help="repeatable; default: both")
     return p
 
 
@@ -46,8 +48,9 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 import jax2onnx  # noqa: F401
             except ImportError:
-                raise ConfigError("ONNX export needs jax2onnx: pip install 'tgrf-jax[deploy]' (or --format "
-                                  "stablehlo)") from None
+                raise ConfigError(
+                    "ONNX export needs jax2onnx: pip install 'tgrf-jax[deploy]' (or --format stablehlo)"
+                ) from None
     except ConfigError as e:
         return error("tgrf-export", e)
 
@@ -63,8 +66,11 @@ def main(argv: list[str] | None = None) -> int:
         return error("tgrf-export", e)
     net, rays = source.config.network, source.config.env.lidar_rays
     lidar = f", {rays}-ray LiDAR (extra input 'lidar')" if rays else ""
-    print(f"exporting {args.run_dir or args.pretrained} ({net.name}/{net.size}, {source.config.env.kinematics}, "
-          f"predictor {source.config.env.predictor}{lidar}) to {args.out}", flush=True)
+    print(
+        f"exporting {args.run_dir or args.pretrained} ({net.name}/{net.size}, {source.config.env.kinematics}, "
+        f"predictor {source.config.env.predictor}{lidar}) to {args.out}",
+        flush=True,
+    )
     t0 = time.perf_counter()
     try:
         out = export(source, args.out, formats)

@@ -34,21 +34,26 @@ _ERRORS = (ValueError, CheckpointError)  # DatasetError and WeightsError are Val
 def _commit() -> str:
     try:
         root = pathlib.Path(__file__).resolve().parents[2]
-        return subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=True).stdout.strip()
+        return subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
 
 def _provenance() -> dict:
-    return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "commit": _commit(), "machine": platform.processor() or platform.machine(),
-            "command": "tgrf-predictor " + " ".join(sys.argv[1:])}
+    return {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "commit": _commit(),
+        "machine": platform.processor() or platform.machine(),
+        "command": "tgrf-predictor " + " ".join(sys.argv[1:]),
+    }
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tgrf-predictor", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="tgrf-predictor", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect", help="collect a dataset from the JAX simulator")
     defaults = data_lib.CollectConfig()
@@ -66,26 +71,41 @@ def _parser() -> argparse.ArgumentParser:
         t.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(tdef, name))
     t.add_argument("--lr", type=float, default=tdef.lr)
     t.add_argument("--decay-rate", type=float, default=tdef.decay_rate)
-    t.add_argument("--cv-prior", action=argparse.BooleanOptionalAction, default=tdef.cv_prior,
-                   help="predict corrections to constant velocity (--no-cv-prior: the released model exactly)")
-    t.add_argument("--mean-loss", choices=train_lib.MEAN_LOSSES, default=tdef.mean_loss,
-                   help="what fits the predicted means: ade (their displacement error; the NLL fits only the "
-                        "spreads) or nll (CrowdNav++ GST's loss for everything)")
-    t.add_argument("--dropout", type=float, default=tdef.dropout,
-                   help="training-time dropout rate (CrowdNav++'s GST: 0.1)")
+    t.add_argument(
+        "--cv-prior",
+        action=argparse.BooleanOptionalAction,
+        default=tdef.cv_prior,
+        help="predict corrections to constant velocity (--no-cv-prior: the released model exactly)",
+    )
+    t.add_argument(
+        "--mean-loss",
+        choices=train_lib.MEAN_LOSSES,
+        default=tdef.mean_loss,
+        help="what fits the predicted means: ade (their displacement error; the NLL fits only the "
+        "spreads) or nll (CrowdNav++ GST's loss for everything)",
+    )
+    t.add_argument(
+        "--dropout", type=float, default=tdef.dropout, help="training-time dropout rate (CrowdNav++'s GST: 0.1)"
+    )
     t.add_argument("--export", help="also write the trained parameters here (.npz + .json)")
     t.add_argument("--fresh", action="store_true", help="ignore existing checkpoints (the run dir must be new)")
-    t.add_argument("--from-step", type=int, metavar="N",
-                   help="continue from checkpoint N instead of the latest (a damaged one, say); the later "
-                   "checkpoints are deleted and their updates trained again")
+    t.add_argument(
+        "--from-step",
+        type=int,
+        metavar="N",
+        help="continue from checkpoint N instead of the latest (a damaged one, say); the later "
+        "checkpoints are deleted and their updates trained again",
+    )
 
     e = sub.add_parser("eval", help="held-out ADE / FDE / NLL against constant velocity")
     e.add_argument("--dataset", required=True)
     which = e.add_mutually_exclusive_group(required=True)
     which.add_argument("--params", help="parameters written by `train` (.npz)")
     which.add_argument("--pretrained", choices=tuple(weights_lib.PRETRAINED), help="the shipped parameters")
-    which.add_argument("--torch-state-dict", help=".npz of the reference's state-dict arrays (names as in the "
-                                                  "reference fixture, 'w/' prefix optional)")
+    which.add_argument(
+        "--torch-state-dict",
+        help=".npz of the reference's state-dict arrays (names as in the reference fixture, 'w/' prefix optional)",
+    )
     e.add_argument("--windows", type=int, default=tdef.eval_windows, help="held-out windows evaluated (spread evenly)")
     e.add_argument("--out", help="write the metrics as JSON here")
     return parser
@@ -107,8 +127,10 @@ def _load_params(args):
     except weights_lib.WeightsError as e:
         raise weights_lib.WeightsError(f"--torch-state-dict {str(path)!r}: {e}") from None
     except Exception as e:  # numpy raises several types for files that are no .npz of arrays
-        raise weights_lib.WeightsError(f"--torch-state-dict {str(path)!r} is not a state dict of numeric arrays "
-                                       f"({type(e).__name__}: {str(e)[:80]})") from None
+        raise weights_lib.WeightsError(
+            f"--torch-state-dict {str(path)!r} is not a state dict of numeric arrays "
+            f"({type(e).__name__}: {str(e)[:80]})"
+        ) from None
 
 
 def _check_finite_params(params, source: str) -> None:
@@ -117,8 +139,9 @@ def _check_finite_params(params, source: str) -> None:
 
     bad = sum(int(np.size(x) - np.count_nonzero(np.isfinite(x))) for x in jax.tree_util.tree_leaves(params))
     if bad:
-        raise weights_lib.WeightsError(f"predictor parameters {source!r} hold {bad:,} non-finite values (NaN or "
-                                       "inf); train them again")
+        raise weights_lib.WeightsError(
+            f"predictor parameters {source!r} hold {bad:,} non-finite values (NaN or inf); train them again"
+        )
 
 
 def _check_outputs(args) -> None:
@@ -140,29 +163,42 @@ def run(argv=None) -> int:
     if args.command == "collect":
         config = data_lib.CollectConfig(crowd=args.crowd, num_envs=args.envs, steps=args.steps, seed=args.seed)
         out = pathlib.Path(args.out)
-        print(f"collecting {config.frames:,} frames ({config.num_envs} envs x {config.steps} steps) of "
-              f"{config.crowd} crowds, seed {config.seed}", flush=True)
+        print(
+            f"collecting {config.frames:,} frames ({config.num_envs} envs x {config.steps} steps) of "
+            f"{config.crowd} crowds, seed {config.seed}",
+            flush=True,
+        )
         dataset = data_lib.collect(config, log=lambda s: print(s, flush=True))
         path = data_lib.save_dataset(out, dataset)
         print(f"wrote {path} ({config.frames:,} frames in {dataset['collect_seconds']:.1f} s)")
         return 0
     if args.command == "train":
-        config = train_lib.TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(train_lib.TrainConfig)})
+        config = train_lib.TrainConfig(
+            **{f.name: getattr(args, f.name) for f in dataclasses.fields(train_lib.TrainConfig)}
+        )
         dataset = data_lib.load_dataset(args.dataset)
         run_dir = pathlib.Path(args.run_dir)
         if args.fresh and (run_dir / "checkpoints").exists():
             raise CheckpointError(f"--fresh: run directory {str(run_dir)!r} already holds checkpoints")
         if args.from_step is not None and (args.fresh or args.from_step < 0):
-            raise ValueError(f"--from-step {args.from_step}: give a checkpoint (update >= 0) of an existing run, "
-                             "without --fresh")
+            raise ValueError(
+                f"--from-step {args.from_step}: give a checkpoint (update >= 0) of an existing run, without --fresh"
+            )
         try:
-            params, meta = train_lib.train(config, dataset, run_dir, log=lambda s: print(s, flush=True),
-                                           resume=not args.fresh, from_step=args.from_step)
+            params, meta = train_lib.train(
+                config,
+                dataset,
+                run_dir,
+                log=lambda s: print(s, flush=True),
+                resume=not args.fresh,
+                from_step=args.from_step,
+            )
         except CheckpointError as e:
             intact = getattr(e, "intact", ())
             if intact:
-                raise CheckpointError(f"{e}; continue from the latest intact one with --from-step {intact[-1]}") \
-                    from None
+                raise CheckpointError(
+                    f"{e}; continue from the latest intact one with --from-step {intact[-1]}"
+                ) from None
             raise
         meta.update(_provenance())
         for target in [run_dir / "gst.npz"] + ([pathlib.Path(args.export)] if args.export else []):
@@ -170,27 +206,33 @@ def run(argv=None) -> int:
         return 0
     # eval
     if not 1 <= args.windows <= train_lib._LIMITS["eval_windows"]:
-        raise ValueError(f"--windows = {args.windows:,} is out of range; allowed: 1 .. "
-                         f"{train_lib._LIMITS['eval_windows']:,}")
+        raise ValueError(
+            f"--windows = {args.windows:,} is out of range; allowed: 1 .. {train_lib._LIMITS['eval_windows']:,}"
+        )
     params, source = _load_params(args)
     _check_finite_params(params, source)
     dataset = data_lib.load_dataset(args.dataset)
     _, val_index = data_lib.split_index(dataset["arrays"])
     if not len(val_index):
-        raise data_lib.DatasetError(f"dataset {args.dataset!r} has no held-out window to evaluate (no pedestrian "
-                                    "seen for 10 frames in its last 20% of envs)")
+        raise data_lib.DatasetError(
+            f"dataset {args.dataset!r} has no held-out window to evaluate (no pedestrian "
+            "seen for 10 frames in its last 20% of envs)"
+        )
     evaluate = train_lib.make_evaluator(data_lib.device_arrays(dataset["arrays"]))
     metrics = evaluate(params, train_lib.eval_subset(val_index, args.windows))
     if not all(math.isfinite(metrics[k]) for k in ("ade", "fde", "nll", "ade_change", "fde_change")):
-        raise ValueError(f"the evaluation of {source!r} on {args.dataset!r} is not finite (ADE {metrics['ade']}, "
-                         f"FDE {metrics['fde']}, NLL {metrics['nll']}): the parameters or the data are damaged")
+        raise ValueError(
+            f"the evaluation of {source!r} on {args.dataset!r} is not finite (ADE {metrics['ade']}, "
+            f"FDE {metrics['fde']}, NLL {metrics['nll']}): the parameters or the data are damaged"
+        )
     print(f"parameters: {source}")
     print(train_lib.format_eval(metrics, f"{dataset['config']['crowd']} ({args.dataset})"))
     if args.out:
         out = pathlib.Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(out, json.dumps({"params": source, "dataset": str(args.dataset), **metrics, **_provenance()},
-                                     indent=2))
+        write_atomic(
+            out, json.dumps({"params": source, "dataset": str(args.dataset), **metrics, **_provenance()}, indent=2)
+        )
     return 0
 
 

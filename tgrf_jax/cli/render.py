@@ -37,17 +37,24 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", action="append", choices=POLICY_CHOICES, help="baseline robot (repeatable)")
     p.add_argument("--episodes", type=int, default=1, help="episodes per policy (default 1)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--seed", type=int, default=0,
-                   help="episode i is episode i of tgrf-eval --seed S with as many episodes (default 0; episodes are "
-                   "recorded in tgrf-eval's batches of 1000, in smaller ones where 1000 episodes would exceed "
-                   "200,000 steps, and then only a render of at most one batch replays tgrf-eval's)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="episode i is episode i of tgrf-eval --seed S with as many episodes (default 0; episodes are "
+        "recorded in tgrf-eval's batches of 1000, in smaller ones where 1000 episodes would exceed "
+        "200,000 steps, and then only a render of at most one batch replays tgrf-eval's)",
+    )
     p.add_argument("--step", type=int, default=None, help="RUN_DIR: checkpoint (update) to render; default latest")
     add_pretrained_arg(p)
     p.add_argument("--fps", type=float, default=8.0, help="GIF/MP4 frames per second (default 8 = 2x real time)")
     p.add_argument("--dpi", type=int, default=90, help="frame resolution (default 90: 648 x 720 pixels)")
     p.add_argument("--stride", type=int, default=1, help="draw every STRIDE-th step (default 1)")
-    p.add_argument("--rays", action="store_true",
-                   help="draw the robot's LiDAR rays and their hits (the env needs a LiDAR: env.lidar_rays > 0)")
+    p.add_argument(
+        "--rays",
+        action="store_true",
+        help="draw the robot's LiDAR rays and their hits (the env needs a LiDAR: env.lidar_rays > 0)",
+    )
     p.add_argument("--no-frames", action="store_true", help="skip the PNG frames")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF")
     p.add_argument("--no-mp4", action="store_true", help="skip the MP4 even when ffmpeg is available")
@@ -70,24 +77,30 @@ def check(args):
     check_seed(args.seed)
     check_writable(args.out, "--out", directory=True)
     if args.no_frames and args.no_gif and (args.no_mp4 or ffmpeg_path() is None):
-        raise ConfigError("nothing to write: --no-frames and --no-gif" + (
-            " and --no-mp4" if args.no_mp4 else " (and ffmpeg is not on PATH for an MP4)"))
+        raise ConfigError(
+            "nothing to write: --no-frames and --no-gif"
+            + (" and --no-mp4" if args.no_mp4 else " (and ffmpeg is not on PATH for an MP4)")
+        )
     choices = "|".join(POLICY_CHOICES)
     if args.config is not None:
         src = pathlib.Path(args.config)
         if not src.exists():
             raise ConfigError(f"{args.config!r} does not exist (expected a tgrf-train run directory or a YAML config)")
         if not src.is_dir() and not args.policy:
-            raise ConfigError(f"{args.config!r} is a config file: name the robot with --policy {choices} (a trained "
-                              "policy needs its RUN_DIR)")
+            raise ConfigError(
+                f"{args.config!r} is a config file: name the robot with --policy {choices} (a trained "
+                "policy needs its RUN_DIR)"
+            )
     elif not args.policy and args.pretrained is None:
         raise ConfigError(f"give a RUN_DIR, --pretrained NAME or --policy {choices}")
     sc = scenario(args.config, args.overrides, "tgrf-render", args.pretrained)
     if args.step is not None and sc.run_dir is None:
         raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
     if args.rays and sc.env.lidar_rays == 0:
-        raise ConfigError("--rays draws the robot's LiDAR rays, but this env has no LiDAR (env.lidar_rays = 0); "
-                          "give it one, e.g. --set env.lidar_rays=72")
+        raise ConfigError(
+            "--rays draws the robot's LiDAR rays, but this env has no LiDAR (env.lidar_rays = 0); "
+            "give it one, e.g. --set env.lidar_rays=72"
+        )
     return sc
 
 
@@ -113,8 +126,9 @@ def main(argv: list[str] | None = None) -> int:
         from tgrf_jax.policies import make_network_for
         from tgrf_jax.policies.learned import LearnedPolicy
 
-        policies.append((f"pretrained {sc.pretrained}", "learned",
-                         LearnedPolicy(make_network_for(sc.config), sc.params)))
+        policies.append(
+            (f"pretrained {sc.pretrained}", "learned", LearnedPolicy(make_network_for(sc.config), sc.params))
+        )
     elif sc.run_dir is not None:
         from tgrf_jax.policies import make_network_for
         from tgrf_jax.policies.learned import LearnedPolicy
@@ -127,8 +141,13 @@ def main(argv: list[str] | None = None) -> int:
             return checkpoint_error("tgrf-render", e, f"tgrf-render {sc.run_dir} --out {args.out} --step")
         except ValueError as e:
             return error("tgrf-render", e)
-        policies.append((f"learned (update {int(state.update)})", "learned",
-                         LearnedPolicy(make_network_for(sc.config), state.params)))
+        policies.append(
+            (
+                f"learned (update {int(state.update)})",
+                "learned",
+                LearnedPolicy(make_network_for(sc.config), state.params),
+            )
+        )
     for name in args.policy or ():
         if name not in [p[1] for p in policies]:
             policies.append((name, name, baseline(name)))
@@ -149,8 +168,10 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             where = f" ({first}-{first + size - 1} of {args.episodes}, batch {b + 1}/{batches})" if batches > 1 else ""
             print(f"{label}: recording {size} episode(s){where} ...", flush=True)
-            episodes = [dataclasses.replace(ep, index=first + ep.index)
-                        for ep in record_episodes(env, policy, eval_key(args.seed, b), size, label=label)]
+            episodes = [
+                dataclasses.replace(ep, index=first + ep.index)
+                for ep in record_episodes(env, policy, eval_key(args.seed, b), size, label=label)
+            ]
             print(f"  recorded in {time.perf_counter() - t0:.1f} s (compile included)", flush=True)
             n_files += _save(episodes, out, slug, args, mp4, summary)
     summary_path = out / "summary.json"
@@ -166,17 +187,41 @@ def _save(episodes, out: pathlib.Path, slug: str, args, mp4, summary: dict) -> i
     n_files = 0
     for ep in episodes:
         t0 = time.perf_counter()
-        paths = save_episode(ep, out / slug, frames=not args.no_frames, gif=not args.no_gif, mp4=mp4,
-                             fps=args.fps, dpi=args.dpi, stride=args.stride, show_rays=args.rays)
+        paths = save_episode(
+            ep,
+            out / slug,
+            frames=not args.no_frames,
+            gif=not args.no_gif,
+            mp4=mp4,
+            fps=args.fps,
+            dpi=args.dpi,
+            stride=args.stride,
+            show_rays=args.rays,
+        )
         n_files += len(paths["frames"]) + sum(paths[k] is not None for k in ("gif", "mp4"))
-        row = dict(ep.summary(), policy=slug, gif=paths["gif"] and str(paths["gif"]),
-                   mp4=paths["mp4"] and str(paths["mp4"]), frames=len(paths["frames"]),
-                   frame_dir=str(out / slug / f"ep{ep.index:03d}") if paths["frames"] else None)
+        row = dict(
+            ep.summary(),
+            policy=slug,
+            gif=paths["gif"] and str(paths["gif"]),
+            mp4=paths["mp4"] and str(paths["mp4"]),
+            frames=len(paths["frames"]),
+            frame_dir=str(out / slug / f"ep{ep.index:03d}") if paths["frames"] else None,
+        )
         summary["episodes"].append(row)
-        made = ", ".join(x for x in (row["gif"], row["mp4"], paths["frames"] and
-                                     f"{len(paths['frames'])} frames in {row['frame_dir']}") if x)
-        print(f"  episode {ep.index}: {ep.outcome} after {ep.duration:.2f} s ({ep.steps} steps), return "
-              f"{ep.ret:+.2f} -> {made} [{time.perf_counter() - t0:.1f} s]", flush=True)
+        made = ", ".join(
+            x
+            for x in (
+                row["gif"],
+                row["mp4"],
+                paths["frames"] and f"{len(paths['frames'])} frames in {row['frame_dir']}",
+            )
+            if x
+        )
+        print(
+            f"  episode {ep.index}: {ep.outcome} after {ep.duration:.2f} s ({ep.steps} steps), return "
+            f"{ep.ret:+.2f} -> {made} [{time.perf_counter() - t0:.1f} s]",
+            flush=True,
+        )
     return n_files
 
 

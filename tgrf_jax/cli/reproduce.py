@@ -18,24 +18,38 @@ def main(argv: list[str] | None = None) -> int:
         "(Markdown and CSV, our numbers beside the paper's) after every row. Rerun the same command after any "
         "interruption: finished rows are skipped, a started row resumes from its last checkpoint.",
     )
-    parser.add_argument("experiment", nargs="?",
-                        help=f"an experiment name ({', '.join(spec_lib.available())}) or a path to an experiment YAML")
+    parser.add_argument(
+        "experiment",
+        nargs="?",
+        help=f"an experiment name ({', '.join(spec_lib.available())}) or a path to an experiment YAML",
+    )
     parser.add_argument("--out", help="results directory (default: runs/reproduce/<experiment>)")
     parser.add_argument("--steps", type=int, help="env steps per run instead of the experiment's budget (quick look)")
     parser.add_argument("--seeds", type=int, help="seeds per cell instead of the experiment's")
     parser.add_argument("--rows", help="comma-separated row names to run (default: all)")
     parser.add_argument("--list", action="store_true", help="list the experiments and their rows, then exit")
-    parser.add_argument("--print-plan", action="store_true",
-                        help="print each row's tgrf-sweep command and state, then exit (nothing runs)")
-    parser.add_argument("--report-only", action="store_true",
-                        help="rewrite the report from finished rows (and export their policies, with "
-                        "--export-pretrained), then exit")
-    parser.add_argument("--export-pretrained", metavar="DIR",
-                        help="export the best seed's policy of every finished row and compared value to "
-                        "DIR/<experiment>-<row>-<value> (tgrf-eval --pretrained plays it)")
-    parser.add_argument("--layout", choices=("batched", "sequential", "auto"),
-                        help="the tgrf-sweep layout of the rows this command trains: new rows start in it (default: "
-                        "auto, sequential on CPUs), started rows switch to it (default: they keep theirs)")
+    parser.add_argument(
+        "--print-plan",
+        action="store_true",
+        help="print each row's tgrf-sweep command and state, then exit (nothing runs)",
+    )
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rewrite the report from finished rows (and export their policies, with --export-pretrained), then exit",
+    )
+    parser.add_argument(
+        "--export-pretrained",
+        metavar="DIR",
+        help="export the best seed's policy of every finished row and compared value to "
+        "DIR/<experiment>-<row>-<value> (tgrf-eval --pretrained plays it)",
+    )
+    parser.add_argument(
+        "--layout",
+        choices=("batched", "sequential", "auto"),
+        help="the tgrf-sweep layout of the rows this command trains: new rows start in it (default: "
+        "auto, sequential on CPUs), started rows switch to it (default: they keep theirs)",
+    )
     args = parser.parse_args(argv)
 
     from tgrf_jax.experiments import report, runner
@@ -55,8 +69,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.rows is not None:
             rows = [r.strip() for r in args.rows.split(",")]
             if not all(rows):
-                raise ConfigError(f"--rows {args.rows[:60]!r}: empty row name; give comma-separated names of "
-                                  f"{exp.name}'s rows: {', '.join(r.name for r in exp.rows)}")
+                raise ConfigError(
+                    f"--rows {args.rows[:60]!r}: empty row name; give comma-separated names of "
+                    f"{exp.name}'s rows: {', '.join(r.name for r in exp.rows)}"
+                )
         whole = exp.shrunk(steps=args.steps, seeds=args.seeds)  # the report always covers every row
         exp = whole.shrunk(rows=rows)
         out = pathlib.Path(args.out or pathlib.Path("runs") / "reproduce" / exp.name)
@@ -69,14 +85,19 @@ def main(argv: list[str] | None = None) -> int:
         if args.print_plan:
             for row in exp.rows:
                 state = runner.row_state(out / row.name)
-                cmd = " ".join(["tgrf-sweep"] + spec_lib.sweep_args(exp, row, args.layout or "auto")
-                               + ["--out", str(out / row.name)])
+                cmd = " ".join(
+                    ["tgrf-sweep"]
+                    + spec_lib.sweep_args(exp, row, args.layout or "auto")
+                    + ["--out", str(out / row.name)]
+                )
                 print(f"{row.name} [{state}]: {cmd}")
             return 0
         if args.report_only:
             if not out.is_dir():
-                raise ConfigError(f"--out {str(out)!r} does not exist: no rows to report (tgrf-reproduce "
-                                  f"{args.experiment} --out {out} trains them)")
+                raise ConfigError(
+                    f"--out {str(out)!r} does not exist: no rows to report (tgrf-reproduce "
+                    f"{args.experiment} --out {out} trains them)"
+                )
             for path in report.write(whole, out):
                 print(path)
             if args.export_pretrained:

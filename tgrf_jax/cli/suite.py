@@ -18,11 +18,18 @@ import time
 SUITE_SIZES = (5, 10, 20, 30)
 # Columns of the Markdown table (the CSV holds every metric).
 TABLE_COLUMNS = (
-    ("success_rate", "SR", "{:.1%}"), ("collision_rate", "coll.", "{:.1%}"), ("timeout_rate", "timeout", "{:.1%}"),
-    ("nav_time", "NT (s)", "{:.2f}"), ("path_length", "PL (m)", "{:.2f}"), ("spl", "SPL", "{:.3f}"),
-    ("itr_disc", "ITR disc (%)", "{:.2f}"), ("min_dist_human", "min dist (m)", "{:.3f}"),
-    ("personal_space_compliance", "PS (%)", "{:.1f}"), ("min_ttc", "min TTC (s)", "{:.2f}"),
-    ("jerk_mean", "jerk (m/s^3)", "{:.2f}"), ("time_stalled", "stalled (s)", "{:.2f}"),
+    ("success_rate", "SR", "{:.1%}"),
+    ("collision_rate", "coll.", "{:.1%}"),
+    ("timeout_rate", "timeout", "{:.1%}"),
+    ("nav_time", "NT (s)", "{:.2f}"),
+    ("path_length", "PL (m)", "{:.2f}"),
+    ("spl", "SPL", "{:.3f}"),
+    ("itr_disc", "ITR disc (%)", "{:.2f}"),
+    ("min_dist_human", "min dist (m)", "{:.3f}"),
+    ("personal_space_compliance", "PS (%)", "{:.1f}"),
+    ("min_ttc", "min TTC (s)", "{:.2f}"),
+    ("jerk_mean", "jerk (m/s^3)", "{:.2f}"),
+    ("time_stalled", "stalled (s)", "{:.2f}"),
 )
 
 
@@ -30,12 +37,29 @@ def suite_env_config(env_config, capacity: int):
     """The suite's env: every scenario selectable by weights, `capacity` human slots."""
     from tgrf_jax.config import SCENARIOS
 
-    return dataclasses.replace(env_config, scenario="mix", mix_scenarios=SCENARIOS, num_humans=capacity,
-                               active_humans_min=None, active_humans_max=None, scenario_weights=None)
+    return dataclasses.replace(
+        env_config,
+        scenario="mix",
+        mix_scenarios=SCENARIOS,
+        num_humans=capacity,
+        active_humans_min=None,
+        active_humans_max=None,
+        scenario_weights=None,
+    )
 
 
-def run_suite(config, policies: dict, out_dir, *, episodes: int, seed: int, sizes=SUITE_SIZES, capacity=None,
-              thumbnails: bool = True, log=print) -> list[dict]:
+def run_suite(
+    config,
+    policies: dict,
+    out_dir,
+    *,
+    episodes: int,
+    seed: int,
+    sizes=SUITE_SIZES,
+    capacity=None,
+    thumbnails: bool = True,
+    log=print,
+) -> list[dict]:
     """Evaluate each of `policies` (name -> Policy) on every scenario x size; writes `suite.md`, `suite.csv` and
     `thumbnails/<scenario>.png` under `out_dir` and returns the rows."""
     import jax
@@ -65,11 +89,19 @@ def run_suite(config, policies: dict, out_dir, *, episodes: int, seed: int, size
                 result = evaluate(env, policy, jax.random.key(seed), episodes, params=params)
                 done += 1
                 rows.append(dict(scenario=name, humans=n, policy=label, **result.to_dict()))
-                log(f"[{done}/{total}] {name:22s} {n:3d} humans  {label:10s} SR {result.success_rate:6.1%}  "
-                    f"coll. {result.collision_rate:6.1%}  ({time.perf_counter() - t0:.0f} s)")
+                log(
+                    f"[{done}/{total}] {name:22s} {n:3d} humans  {label:10s} SR {result.success_rate:6.1%}  "
+                    f"coll. {result.collision_rate:6.1%}  ({time.perf_counter() - t0:.0f} s)"
+                )
         if thumbnails:
-            _thumbnail(env, next(iter(policies.values())), params_for(base, weights, min(10, capacity)), seed,
-                       out / "thumbnails" / f"{name}.png", name)
+            _thumbnail(
+                env,
+                next(iter(policies.values())),
+                params_for(base, weights, min(10, capacity)),
+                seed,
+                out / "thumbnails" / f"{name}.png",
+                name,
+            )
     _write_tables(rows, out)
     log(f"wrote {out / 'suite.md'}, {out / 'suite.csv'}" + (f" and {len(SCENARIOS)} thumbnails" if thumbnails else ""))
     return rows
@@ -103,8 +135,11 @@ def _write_tables(rows: list[dict], out: pathlib.Path) -> None:
     header = "| scenario | humans | policy | " + " | ".join(label for _, label, _ in TABLE_COLUMNS) + " |"
     lines = [header, "|" + "---|" * (len(TABLE_COLUMNS) + 3)]
     for r in rows:
-        lines.append(f"| {r['scenario']} | {r['humans']} | {r['policy']} | "
-                     + " | ".join(_cell(r[f], fmt) for f, _, fmt in TABLE_COLUMNS) + " |")
+        lines.append(
+            f"| {r['scenario']} | {r['humans']} | {r['policy']} | "
+            + " | ".join(_cell(r[f], fmt) for f, _, fmt in TABLE_COLUMNS)
+            + " |"
+        )
     (out / "suite.md").write_text("\n".join(lines) + "\n")
     with open(out / "suite.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))

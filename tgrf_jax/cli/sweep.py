@@ -27,30 +27,63 @@ def parser() -> argparse.ArgumentParser:
         "over all devices. Only traced (numeric, shape-preserving) fields can be gridded; see --list-griddable.",
     )
     add_config_args(p, "YAML config as for tgrf-train (default: the embedded default)")
-    p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...",
-                   help="a grid axis, e.g. --grid reward.h_disc=0.5,1.0,2.5 (repeatable: Cartesian product)")
-    p.add_argument("--seeds", default=None, metavar="N|S1,S2,...",
-                   help="a count (run.seed, run.seed+1, ...) or a comma-separated list of seeds (default: 1)")
+    p.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2,...",
+        help="a grid axis, e.g. --grid reward.h_disc=0.5,1.0,2.5 (repeatable: Cartesian product)",
+    )
+    p.add_argument(
+        "--seeds",
+        default=None,
+        metavar="N|S1,S2,...",
+        help="a count (run.seed, run.seed+1, ...) or a comma-separated list of seeds (default: 1)",
+    )
     p.add_argument("--out", help="sweep directory (default: runs/<timestamp>_sweep_<run.name>)")
-    p.add_argument("--resume", metavar="SWEEP_DIR", help="continue the sweep in SWEEP_DIR from its last checkpoint (a "
-                   "finished sweep: re-create its result files)")
-    p.add_argument("--from-step", type=int, metavar="N",
-                   help="with --resume: continue from checkpoint N instead of the latest (a damaged one, say); "
-                   "the later checkpoints are deleted and their updates trained again")
-    p.add_argument("--devices", type=int, default=None, metavar="N",
-                   help="use the first N devices (default: all of them, across all hosts)")
-    p.add_argument("--layout", choices=("batched", "sequential", "auto"), default=None,
-                   help="batched (default): each device trains its runs as one vmapped program; sequential: the runs "
-                        "take turns, each through tgrf-train's own program (bit-identical to tgrf-train; faster for "
-                        "large configs on CPUs); auto: sequential on CPU devices, else batched. Recorded in "
-                        "sweep.yaml: --resume keeps it, --resume with --layout switches it (a sweep begun on a GPU "
-                        "continues on a CPU, say; the runs then match an unswitched resume up to float rounding)")
-    p.add_argument("--no-run-checkpoints", action="store_true",
-                   help="do not write each run's final checkpoint under runs/<name>/checkpoints")
-    dist = p.add_argument_group("multi-host (one process per host, all with the same arguments; the sweep "
-                                "directory must be on a filesystem all hosts share)")
-    dist.add_argument("--distributed", action="store_true",
-                      help="call jax.distributed.initialize() with its auto-detection (SLURM, Cloud TPU, ...)")
+    p.add_argument(
+        "--resume",
+        metavar="SWEEP_DIR",
+        help="continue the sweep in SWEEP_DIR from its last checkpoint (a finished sweep: re-create its result files)",
+    )
+    p.add_argument(
+        "--from-step",
+        type=int,
+        metavar="N",
+        help="with --resume: continue from checkpoint N instead of the latest (a damaged one, say); "
+        "the later checkpoints are deleted and their updates trained again",
+    )
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        metavar="N",
+        help="use the first N devices (default: all of them, across all hosts)",
+    )
+    p.add_argument(
+        "--layout",
+        choices=("batched", "sequential", "auto"),
+        default=None,
+        help="batched (default): each device trains its runs as one vmapped program; sequential: the runs "
+        "take turns, each through tgrf-train's own program (bit-identical to tgrf-train; faster for "
+        "large configs on CPUs); auto: sequential on CPU devices, else batched. Recorded in "
+        "sweep.yaml: --resume keeps it, --resume with --layout switches it (a sweep begun on a GPU "
+        "continues on a CPU, say; the runs then match an unswitched resume up to float rounding)",
+    )
+    p.add_argument(
+        "--no-run-checkpoints",
+        action="store_true",
+        help="do not write each run's final checkpoint under runs/<name>/checkpoints",
+    )
+    dist = p.add_argument_group(
+        "multi-host (one process per host, all with the same arguments; the sweep "
+        "directory must be on a filesystem all hosts share)"
+    )
+    dist.add_argument(
+        "--distributed",
+        action="store_true",
+        help="call jax.distributed.initialize() with its auto-detection (SLURM, Cloud TPU, ...)",
+    )
     dist.add_argument("--coordinator", metavar="HOST:PORT", help="jax.distributed coordinator (process 0's address)")
     dist.add_argument("--num-processes", type=int, help="with --coordinator: number of processes")
     dist.add_argument("--process-id", type=int, help="with --coordinator: this process's index (0 .. N-1)")
@@ -59,8 +92,9 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def init_distributed(coordinator: str | None = None, num_processes: int | None = None,
-                     process_id: int | None = None) -> None:
+def init_distributed(
+    coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None
+) -> None:
     """jax.distributed.initialize (before any computation); on CPU with gloo collectives for the host gathers."""
     import jax
 
@@ -72,8 +106,7 @@ def init_distributed(coordinator: str | None = None, num_processes: int | None =
         except Exception:
             pass
     if coordinator:
-        jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
-                                   process_id=process_id)
+        jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
     else:
         jax.distributed.initialize()
 
@@ -89,14 +122,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_jax()
         if args.from_step is not None and not args.resume:
-            raise ConfigError("--from-step N continues a sweep from one of its checkpoints: it needs --resume "
-                              "SWEEP_DIR")
+            raise ConfigError(
+                "--from-step N continues a sweep from one of its checkpoints: it needs --resume SWEEP_DIR"
+            )
         if args.from_step is not None and args.from_step < 0:
             raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
         if args.resume:
             if args.config or args.grid or args.overrides or args.seeds or args.out:
-                raise ConfigError("--resume SWEEP_DIR takes no config file, --grid, --seeds, --set or --out (the "
-                                  "sweep's own sweep.yaml is used)")
+                raise ConfigError(
+                    "--resume SWEEP_DIR takes no config file, --grid, --seeds, --set or --out (the "
+                    "sweep's own sweep.yaml is used)"
+                )
             spec = load_sweep(args.resume)
         else:
             spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides)  # layout: set below
@@ -135,9 +171,16 @@ def main(argv: list[str] | None = None) -> int:
         spec = dataclasses.replace(spec, layout=layout or spec.layout)
 
     try:
-        run_sweep(None if args.resume else spec, sweep_dir, resume=bool(args.resume), from_step=args.from_step,
-                  log=progress_line, num_devices=args.devices,
-                  export_checkpoints=not args.no_run_checkpoints, layout=layout if args.resume else None)
+        run_sweep(
+            None if args.resume else spec,
+            sweep_dir,
+            resume=bool(args.resume),
+            from_step=args.from_step,
+            log=progress_line,
+            num_devices=args.devices,
+            export_checkpoints=not args.no_run_checkpoints,
+            layout=layout if args.resume else None,
+        )
     except CheckpointError as e:
         return checkpoint_error("tgrf-sweep", e, f"tgrf-sweep --resume {sweep_dir} --from-step")
     except ConfigError as e:

@@ -27,11 +27,18 @@ def parser() -> argparse.ArgumentParser:
     )
     add_config_args(p, "YAML with env/reward/ppo/network/run sections (all optional)")
     p.add_argument("--out-dir", help="run directory (default: runs/<timestamp>_<run.name>)")
-    p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint (a "
-                   "finished run: re-create missing result files)")
-    p.add_argument("--from-step", type=int, metavar="N",
-                   help="with --resume: continue from checkpoint N instead of the latest (a damaged one, say); "
-                   "the later checkpoints are deleted and their updates trained again")
+    p.add_argument(
+        "--resume",
+        metavar="RUN_DIR",
+        help="continue the run in RUN_DIR from its last checkpoint (a finished run: re-create missing result files)",
+    )
+    p.add_argument(
+        "--from-step",
+        type=int,
+        metavar="N",
+        help="with --resume: continue from checkpoint N instead of the latest (a damaged one, say); "
+        "the later checkpoints are deleted and their updates trained again",
+    )
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     return p
 
@@ -49,8 +56,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
         if args.resume:
             if args.config or args.overrides or args.out_dir:
-                raise ConfigError("--resume RUN_DIR takes no config file, --set or --out-dir (the run's own "
-                                  "config.yaml is used)")
+                raise ConfigError(
+                    "--resume RUN_DIR takes no config file, --set or --out-dir (the run's own config.yaml is used)"
+                )
             config = load_run_config(args.resume)
         else:
             config = train_config(args.config, args.overrides)
@@ -67,8 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     from tgrf_jax.train.run_dir import train_run
 
     try:
-        train_run(config, run_dir, resume=bool(args.resume), from_step=args.from_step,
-                  log=progress_line)
+        train_run(config, run_dir, resume=bool(args.resume), from_step=args.from_step, log=progress_line)
     except CheckpointError as e:
         return checkpoint_error("tgrf-train", e, f"tgrf-train --resume {run_dir} --from-step")
     except ConfigError as e:

@@ -9,5 +9,17 @@ from tgrf_jax.deploy.navigator import Decision, Detection, Navigator, RobotState
 from tgrf_jax.deploy.policy import PolicySource, PolicyStep, load_source, read_interface
 from tgrf_jax.deploy.runtimes import RUNTIMES, make_runtime
 
-__all__ = ["FORMATS", "RUNTIMES", "Decision", "Detection", "Navigator", "PolicySource", "PolicyStep", "RobotState",
-           "export", "load_source", "make_runtime", "read_interface"]
+__all__ = [
+    "FORMATS",
+    "RUNTIMES",
+    "Decision",
+    "Detection",
+    "Navigator",
+    "PolicySource",
+    "PolicyStep",
+    "RobotState",
+    "export",
+    "load_source",
+    "make_runtime",
+    "read_interface",
+]

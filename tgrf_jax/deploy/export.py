@@ -52,80 +52,172 @@ def interface(step: PolicyStep, source: PolicySource, formats) -> dict:
     holonomic = env.kinematics == "holonomic"
     human_cols = ["x_rel", "y_rel"] + [f"{axis}_pred{j}_rel" for j in range(1, k + 1) for axis in ("x", "y")]
     rays = step.lidar_rays
-    lidar = [] if not rays else [
-        {"name": "lidar", "shape": [rays], "dtype": "float32",
-         "frame": "robot body: ray 0 along robot_node's heading" + (
-             " (pi/2 for this holonomic policy: ray 0 along world +y; rotate the scan of a robot facing elsewhere "
-             "by its heading - pi/2, as tgrf_jax.deploy.Navigator does)" if holonomic else ""),
-         "units": "m", "layout": f"ray k at angle heading + 2 pi k / {rays} rad, counter-clockwise, k = 0 .. {rays - 1}",
-         "meaning": f"2-D LiDAR ranges to the first return (obstacles and people), 360 degrees in {rays} rays; "
-                    f"values above the sensor range ({env.sensor_range} m) are read as it (clip them), and a ray with "
-                    "no return is the sensor range (NaN is read as no return)",
-         "values": {"rays": rays, "angle_step_rad": 2 * np.pi / rays, "max_range_m": env.sensor_range}}]
-    action = ({"name": "action", "shape": [2], "dtype": "float32", "frame": "world", "units": "m/s",
-               "layout": ["vx", "vy"],
-               "meaning": f"desired velocity; the robot drives at it after scaling its norm down to at most "
-                          f"v_max = {env.robot_v_max} m/s (larger outputs keep their direction)"}
-              if holonomic else
-              {"name": "action", "shape": [2], "dtype": "float32", "frame": "robot", "units": ["m/s", "rad"],
-               "layout": ["dv", "dtheta"],
-               "meaning": f"change of forward speed and of heading over one step of dt = {env.dt} s; clip dv to "
-                          f"[{env.unicycle_dv_min}, {env.unicycle_dv_max}] m/s and dtheta to "
-                          f"[-{env.unicycle_dtheta_max}, {env.unicycle_dtheta_max}] rad, then "
-                          f"v = clip(v + dv, -{env.robot_v_max}, {env.robot_v_max}) m/s and omega = dtheta / dt"})
+    lidar = (
+        []
+        if not rays
+        else [
+            {
+                "name": "lidar",
+                "shape": [rays],
+                "dtype": "float32",
+                "frame": "robot body: ray 0 along robot_node's heading"
+                + (
+                    " (pi/2 for this holonomic policy: ray 0 along world +y; rotate the scan of a robot facing elsewhere "
+                    "by its heading - pi/2, as tgrf_jax.deploy.Navigator does)"
+                    if holonomic
+                    else ""
+                ),
+                "units": "m",
+                "layout": f"ray k at angle heading + 2 pi k / {rays} rad, counter-clockwise, k = 0 .. {rays - 1}",
+                "meaning": f"2-D LiDAR ranges to the first return (obstacles and people), 360 degrees in {rays} rays; "
+                f"values above the sensor range ({env.sensor_range} m) are read as it (clip them), and a ray with "
+                "no return is the sensor range (NaN is read as no return)",
+                "values": {"rays": rays, "angle_step_rad": 2 * np.pi / rays, "max_range_m": env.sensor_range},
+            }
+        ]
+    )
+    action = (
+        {
+            "name": "action",
+            "shape": [2],
+            "dtype": "float32",
+            "frame": "world",
+            "units": "m/s",
+            "layout": ["vx", "vy"],
+            "meaning": f"desired velocity; the robot drives at it after scaling its norm down to at most "
+            f"v_max = {env.robot_v_max} m/s (larger outputs keep their direction)",
+        }
+        if holonomic
+        else {
+            "name": "action",
+            "shape": [2],
+            "dtype": "float32",
+            "frame": "robot",
+            "units": ["m/s", "rad"],
+            "layout": ["dv", "dtheta"],
+            "meaning": f"change of forward speed and of heading over one step of dt = {env.dt} s; clip dv to "
+            f"[{env.unicycle_dv_min}, {env.unicycle_dv_max}] m/s and dtheta to "
+            f"[-{env.unicycle_dtheta_max}, {env.unicycle_dtheta_max}] rad, then "
+            f"v = clip(v + dv, -{env.robot_v_max}, {env.robot_v_max}) m/s and omega = dtheta / dt",
+        }
+    )
     return {
         "format": "tgrf-jax policy step",
         "version": INTERFACE_VERSION,
         "files": {f: {"onnx": ONNX_FILE, "stablehlo": STABLEHLO_FILE}[f] for f in formats},
         "stablehlo_platforms": list(STABLEHLO_PLATFORMS) if "stablehlo" in formats else [],
         "decision": "one deterministic step (the policy Gaussian's mean): call once per control period dt with "
-                    "the current observation and the previous call's new_state; all inputs are float32 and "
-                    "unbatched",
+        "the current observation and the previous call's new_state; all inputs are float32 and "
+        "unbatched",
         "dt_s": env.dt,
         "inputs": [
-            {"name": "robot_node", "shape": [7], "dtype": "float32", "frame": "world",
-             "layout": ["px", "py", "radius", "gx", "gy", "v_max", "heading"],
-             "units": ["m", "m", "m", "m", "m", "m/s", "rad"],
-             "meaning": "robot position, its radius, goal position, top speed and heading"
-                        + (" (a holonomic policy was trained with heading fixed at pi/2: pass 1.5707964)"
-                           if holonomic else " (counter-clockwise from the world x axis)"),
-             "values": {"radius": env.robot_radius, "v_max": env.robot_v_max}},
-            {"name": "robot_vel", "shape": [2], "dtype": "float32", "frame": "world", "units": "m/s",
-             "layout": ["vx", "vy"], "meaning": "the robot's velocity over the last step"},
-            {"name": "humans", "shape": [n, d], "dtype": "float32", "frame": "world axes, origin at the robot",
-             "units": "m", "layout": human_cols,
-             "meaning": "one row per human in sensor range (edge-to-edge distance <= "
-                        f"{env.sensor_range} m): position minus the robot's position"
-                        + (f", then the predicted positions at t + dt .. t + {k} dt ({env.predictor} predictions)"
-                           " minus the robot's current position" if k else "")
-                        + f"; rows sorted by centre distance, nearest first; if more than {n} humans are in "
-                        f"range keep the {n} nearest",
-             "padding": "rows beyond the humans in range are all zeros and have human_mask 0; their values "
-                        "are ignored"},
-            {"name": "human_mask", "shape": [n], "dtype": "float32", "units": "1",
-             "meaning": "1.0 for a row holding a human in range, 0.0 for a padding row (ones first)"},
+            {
+                "name": "robot_node",
+                "shape": [7],
+                "dtype": "float32",
+                "frame": "world",
+                "layout": ["px", "py", "radius", "gx", "gy", "v_max", "heading"],
+                "units": ["m", "m", "m", "m", "m", "m/s", "rad"],
+                "meaning": "robot position, its radius, goal position, top speed and heading"
+                + (
+                    " (a holonomic policy was trained with heading fixed at pi/2: pass 1.5707964)"
+                    if holonomic
+                    else " (counter-clockwise from the world x axis)"
+                ),
+                "values": {"radius": env.robot_radius, "v_max": env.robot_v_max},
+            },
+            {
+                "name": "robot_vel",
+                "shape": [2],
+                "dtype": "float32",
+                "frame": "world",
+                "units": "m/s",
+                "layout": ["vx", "vy"],
+                "meaning": "the robot's velocity over the last step",
+            },
+            {
+                "name": "humans",
+                "shape": [n, d],
+                "dtype": "float32",
+                "frame": "world axes, origin at the robot",
+                "units": "m",
+                "layout": human_cols,
+                "meaning": "one row per human in sensor range (edge-to-edge distance <= "
+                f"{env.sensor_range} m): position minus the robot's position"
+                + (
+                    f", then the predicted positions at t + dt .. t + {k} dt ({env.predictor} predictions)"
+                    " minus the robot's current position"
+                    if k
+                    else ""
+                )
+                + f"; rows sorted by centre distance, nearest first; if more than {n} humans are in "
+                f"range keep the {n} nearest",
+                "padding": "rows beyond the humans in range are all zeros and have human_mask 0; their values "
+                "are ignored",
+            },
+            {
+                "name": "human_mask",
+                "shape": [n],
+                "dtype": "float32",
+                "units": "1",
+                "meaning": "1.0 for a row holding a human in range, 0.0 for a padding row (ones first)",
+            },
             *lidar,
-            {"name": "state", "shape": [step.state_size], "dtype": "float32", "units": "none",
-             "meaning": "the network's recurrent state: zeros at the start of every trip, then the previous "
-                        "call's new_state"},
+            {
+                "name": "state",
+                "shape": [step.state_size],
+                "dtype": "float32",
+                "units": "none",
+                "meaning": "the network's recurrent state: zeros at the start of every trip, then the previous "
+                "call's new_state",
+            },
         ],
         "outputs": [
             action,
-            {"name": "new_state", "shape": [step.state_size], "dtype": "float32", "units": "none",
-             "meaning": "recurrent state to pass as `state` on the next call"},
+            {
+                "name": "new_state",
+                "shape": [step.state_size],
+                "dtype": "float32",
+                "units": "none",
+                "meaning": "recurrent state to pass as `state` on the next call",
+            },
         ],
-        "robot": {"kinematics": env.kinematics, "radius_m": env.robot_radius, "v_max_m_s": env.robot_v_max,
-                  "sensor_range_m": env.sensor_range, "lidar_rays": rays,
-                  **({} if holonomic else {"dv_min_m_s": env.unicycle_dv_min, "dv_max_m_s": env.unicycle_dv_max,
-                                           "dtheta_max_rad": env.unicycle_dtheta_max})},
-        "predictions": {"predictor": env.predictor, "horizon_steps": k,
-                        "const_vel": "p + j * dt * v for j = 1..K, v the human's velocity over the last step",
-                        "note": ("predictions come from the learned GST model: tgrf_jax.deploy.Navigator runs it"
-                                 if env.predictor == "gst" else
-                                 "ground-truth futures exist only in simulation" if env.predictor == "truth"
-                                 else "")},
-        "network": {"name": source.config.network.name, "size": source.config.network.size,
-                    "frame": source.config.network.frame, "num_humans": n, "obs_human_dim": d, "lidar_rays": rays},
+        "robot": {
+            "kinematics": env.kinematics,
+            "radius_m": env.robot_radius,
+            "v_max_m_s": env.robot_v_max,
+            "sensor_range_m": env.sensor_range,
+            "lidar_rays": rays,
+            **(
+                {}
+                if holonomic
+                else {
+                    "dv_min_m_s": env.unicycle_dv_min,
+                    "dv_max_m_s": env.unicycle_dv_max,
+                    "dtheta_max_rad": env.unicycle_dtheta_max,
+                }
+            ),
+        },
+        "predictions": {
+            "predictor": env.predictor,
+            "horizon_steps": k,
+            "const_vel": "p + j * dt * v for j = 1..K, v the human's velocity over the last step",
+            "note": (
+                "predictions come from the learned GST model: tgrf_jax.deploy.Navigator runs it"
+                if env.predictor == "gst"
+                else "ground-truth futures exist only in simulation"
+                if env.predictor == "truth"
+                else ""
+            ),
+        },
+        "network": {
+            "name": source.config.network.name,
+            "size": source.config.network.size,
+            "frame": source.config.network.frame,
+            "num_humans": n,
+            "obs_human_dim": d,
+            "lidar_rays": rays,
+        },
         "source": source.origin,
     }
 
@@ -144,8 +236,14 @@ def _onnx_bytes(step: PolicyStep) -> bytes:
     def primitives(*args):
         return tuple(jaxpr_as_fun(closed)(*args))
 
-    model = to_onnx(primitives, step.input_shapes(), input_names=list(step.input_names), output_names=list(OUTPUT_NAMES),
-                    model_name="tgrf_policy_step", opset=ONNX_OPSET)
+    model = to_onnx(
+        primitives,
+        step.input_shapes(),
+        input_names=list(step.input_names),
+        output_names=list(OUTPUT_NAMES),
+        model_name="tgrf_policy_step",
+        opset=ONNX_OPSET,
+    )
     return model.SerializeToString()
 
 

@@ -111,8 +111,9 @@ def _robot_state(state) -> np.ndarray:
     elif isinstance(state, Mapping):
         unknown = set(state) - {"pose", "velocity"}
         if unknown or "pose" not in state or "velocity" not in state:
-            raise ValueError(f"robot_state mapping needs keys 'pose' (x, y, heading) and 'velocity' (vx, vy); got "
-                             f"{sorted(state)}")
+            raise ValueError(
+                f"robot_state mapping needs keys 'pose' (x, y, heading) and 'velocity' (vx, vy); got {sorted(state)}"
+            )
         pose = _vector(state["pose"], 3, "robot_state pose", "x m, y m, heading rad")
         vel = _vector(state["velocity"], 2, "robot_state velocity", "vx, vy in m/s, world frame")
         return np.concatenate([pose, vel])
@@ -141,7 +142,7 @@ class _GstTracker:
         self.visible = None  # (slots, OBS_LEN) bool
         self.robot_hist = None  # (OBS_LEN, 2) the robot position of each frame (the filler's origin)
         self.owner: list = [None] * self.slots
-        self.last_seen = np.full(self.slots, -10**9)
+        self.last_seen = np.full(self.slots, -(10**9))
         self.frame = 0
 
     def _slots_for(self, ids) -> list[int]:
@@ -156,8 +157,11 @@ class _GstTracker:
         for i, tid in enumerate(ids):
             if out[i] is not None:
                 continue
-            free = [s for s in range(self.slots) if s not in taken
-                    and (self.owner[s] is None or self.frame - self.last_seen[s] >= self.obs_len)]
+            free = [
+                s
+                for s in range(self.slots)
+                if s not in taken and (self.owner[s] is None or self.frame - self.last_seen[s] >= self.obs_len)
+            ]
             # An integer id in range keeps its own slot, so ids equal to the env's human indices lay the
             # history out exactly as the env does.
             if isinstance(tid, (int, np.integer)) and 0 <= tid < self.slots and tid in free:
@@ -216,14 +220,23 @@ class Navigator:
     human is taken as in range no later than the env would).
     """
 
-    def __init__(self, source: str | PolicySource, *, runtime: str = "jax", step: int | None = None,
-                 threads: int = 1, default_human_radius: float | None = None):
+    def __init__(
+        self,
+        source: str | PolicySource,
+        *,
+        runtime: str = "jax",
+        step: int | None = None,
+        threads: int = 1,
+        default_human_radius: float | None = None,
+    ):
         self.source = source if isinstance(source, PolicySource) else load_source(source, step=step)
         env = self.source.config.env
         if env.predictor == "truth":
-            raise ConfigError("this policy was trained on ground-truth predictions (env.predictor = 'truth'), "
-                              "the crowd's true future that only a simulator has; deploy a const_vel, gst or none "
-                              "policy instead")
+            raise ConfigError(
+                "this policy was trained on ground-truth predictions (env.predictor = 'truth'), "
+                "the crowd's true future that only a simulator has; deploy a const_vel, gst or none "
+                "policy instead"
+            )
         self.env_config = env
         self.kinematics = env.kinematics
         self.dt = float(env.dt)
@@ -245,8 +258,10 @@ class Navigator:
 
     def __repr__(self):
         lidar = f", lidar_rays={self.lidar_rays}" if self.lidar_rays else ""
-        return (f"Navigator({self.source.config.network.name}/{self.source.config.network.size}, "
-                f"{self.kinematics}, predictor={self.env_config.predictor!r}{lidar}, runtime={self.runtime_name!r})")
+        return (
+            f"Navigator({self.source.config.network.name}/{self.source.config.network.size}, "
+            f"{self.kinematics}, predictor={self.env_config.predictor!r}{lidar}, runtime={self.runtime_name!r})"
+        )
 
     def reset(self) -> None:
         """Start a trip: zero recurrent state, empty prediction history."""
@@ -260,12 +275,15 @@ class Navigator:
         """(pos (M, 2), vel (M, 2), radius (M,), ids or None, detected, dropped) with non-finite rows removed."""
         if humans is None:
             humans = []
-        if isinstance(humans, np.ndarray) or (isinstance(humans, Sequence) and humans
-                                              and not isinstance(humans[0], (Detection, Mapping))):
+        if isinstance(humans, np.ndarray) or (
+            isinstance(humans, Sequence) and humans and not isinstance(humans[0], (Detection, Mapping))
+        ):
             arr = np.asarray(humans, dtype=np.float64)
             if arr.ndim != 2 or arr.shape[1] not in (4, 5):
-                raise ValueError(f"humans as an array must be (M, 4) [x, y, vx, vy] or (M, 5) [x, y, vx, vy, "
-                                 f"radius] in m and m/s; got shape {arr.shape}")
+                raise ValueError(
+                    f"humans as an array must be (M, 4) [x, y, vx, vy] or (M, 5) [x, y, vx, vy, "
+                    f"radius] in m and m/s; got shape {arr.shape}"
+                )
             pos, vel = arr[:, 0:2], arr[:, 2:4]
             radius = arr[:, 4] if arr.shape[1] == 5 else np.full(len(arr), self.default_human_radius)
         else:
@@ -274,16 +292,20 @@ class Navigator:
                 if isinstance(h, Mapping):
                     unknown = set(h) - {"position", "velocity", "radius", "id"}
                     if unknown or "position" not in h:
-                        raise ValueError(f"humans[{i}] needs 'position' (and 'velocity', optional 'radius', 'id'); "
-                                         f"got keys {sorted(h)}")
+                        raise ValueError(
+                            f"humans[{i}] needs 'position' (and 'velocity', optional 'radius', 'id'); "
+                            f"got keys {sorted(h)}"
+                        )
                     h = Detection(h["position"], h.get("velocity", (0.0, 0.0)), h.get("radius"), h.get("id"))
                 elif not isinstance(h, Detection):
                     raise ValueError(f"humans[{i}] must be a Detection or a mapping; got {type(h).__name__}")
                 p = np.asarray(h.position, np.float64)
                 v = np.asarray(h.velocity, np.float64)
                 if p.shape != (2,) or v.shape != (2,):
-                    raise ValueError(f"humans[{i}]: position and velocity must be 2 numbers each (m, m/s); got "
-                                     f"shapes {p.shape} and {v.shape}")
+                    raise ValueError(
+                        f"humans[{i}]: position and velocity must be 2 numbers each (m, m/s); got "
+                        f"shapes {p.shape} and {v.shape}"
+                    )
                 pos.append(p)
                 vel.append(v)
                 radius.append(self.default_human_radius if h.radius is None else float(h.radius))
@@ -312,19 +334,22 @@ class Navigator:
     def _scan(self, lidar, heading: float):
         """The policy's `lidar` input from a robot's scan: (ranges (R,) float32, rays that were not finite)."""
         r, max_range = self.lidar_rays, float(self.env_config.sensor_range)
-        frame = ("metres, ray 0 along the robot's heading, counter-clockwise (the scanner's body frame), "
-                 f"ray k at heading + 2 pi k / {r}")
+        frame = (
+            "metres, ray 0 along the robot's heading, counter-clockwise (the scanner's body frame), "
+            f"ray k at heading + 2 pi k / {r}"
+        )
         if lidar is None:
-            raise ValueError(f"lidar: this policy reads a {r}-ray 2-D LiDAR scan; pass lidar = {r} ranges in "
-                             f"{frame}")
+            raise ValueError(f"lidar: this policy reads a {r}-ray 2-D LiDAR scan; pass lidar = {r} ranges in {frame}")
         try:
             scan = np.asarray(lidar, dtype=np.float64)
         except (TypeError, ValueError):
             raise ValueError(f"lidar must be {r} numbers (ranges in {frame}); got {lidar!r}") from None
         if scan.ndim != 1 or scan.shape[0] != r:
             got = f"{scan.shape[0]} rays" if scan.ndim == 1 else f"shape {scan.shape}"
-            raise ValueError(f"lidar has {got} but this policy was trained on {r} rays (ranges in {frame}); "
-                             f"resample the scan to {r} rays")
+            raise ValueError(
+                f"lidar has {got} but this policy was trained on {r} rays (ranges in {frame}); "
+                f"resample the scan to {r} rays"
+            )
         finite = np.isfinite(scan)
         bad = np.flatnonzero(finite & (scan < 0))
         if len(bad):
@@ -346,18 +371,24 @@ class Navigator:
         if self.lidar_rays:
             scan, invalid = self._scan(lidar, float(rs[2]))
         elif lidar is not None:
-            raise ValueError("lidar: this policy has no scan input (it was trained with env.lidar_rays = 0); turn "
-                             "the scan into human detections (positions and velocities) and pass those as `humans`")
+            raise ValueError(
+                "lidar: this policy has no scan input (it was trained with env.lidar_rays = 0); turn "
+                "the scan into human detections (positions and velocities) and pass those as `humans`"
+            )
         goal = _vector(goal, 2, "goal", "gx, gy in m, world frame")
         env = self.env_config
         v_max = np.float32(env.robot_v_max)
         if math.hypot(rs[3], rs[4]) > SPEED_SANITY * v_max:
-            raise ValueError(f"robot_state velocity ({rs[3]}, {rs[4]}) is over {SPEED_SANITY:g} x v_max = "
-                             f"{v_max} m/s: velocities are in m/s, world frame")
+            raise ValueError(
+                f"robot_state velocity ({rs[3]}, {rs[4]}) is over {SPEED_SANITY:g} x v_max = "
+                f"{v_max} m/s: velocities are in m/s, world frame"
+            )
         pos, vel, radius, ids, detected, dropped = self._detections(humans, ids)
         if self._gst is not None and ids is None and len(pos):
-            raise ValueError("the gst predictor follows each human over 5 frames: give every detection an id "
-                             "(Detection(..., id=track_id) or act(..., ids=[...]))")
+            raise ValueError(
+                "the gst predictor follows each human over 5 frames: give every detection an id "
+                "(Detection(..., id=track_id) or act(..., ids=[...]))"
+            )
         f32 = np.float32
         robot_pos = rs[0:2].astype(f32)
         rel = pos.astype(f32) - robot_pos
@@ -365,7 +396,7 @@ class Navigator:
         edge = dist - f32(env.robot_radius) - radius.astype(f32)
         in_range = np.flatnonzero(edge <= f32(env.sensor_range))
         order = in_range[np.argsort(dist[in_range], kind="stable")]
-        used = order[:self.capacity]
+        used = order[: self.capacity]
 
         feats = [rel[used]]
         if self._k:
@@ -377,9 +408,9 @@ class Navigator:
         elif self._gst is not None:
             self._gst.predictions(robot_pos, pos.astype(f32)[used], [ids[i] for i in used])
         rows = np.zeros((self.capacity, self._step_info.obs_human_dim), f32)
-        rows[:len(used)] = np.concatenate(feats, axis=1)
+        rows[: len(used)] = np.concatenate(feats, axis=1)
         mask = np.zeros(self.capacity, f32)
-        mask[:len(used)] = 1.0
+        mask[: len(used)] = 1.0
         heading = f32(rs[2]) if self.kinematics == "unicycle" else HOLONOMIC_HEADING
         robot_node = np.array([robot_pos[0], robot_pos[1], env.robot_radius, goal[0], goal[1], v_max, heading], f32)
         robot_vel = rs[3:5].astype(f32)
@@ -406,12 +437,21 @@ class Navigator:
         action = np.asarray(action, np.float32)
         if dropped:
             self.dropped_total += dropped
-            log.warning("dropped %d of %d detections with a non-finite position, velocity or radius (%d so far)",
-                        dropped, detected, self.dropped_total)
+            log.warning(
+                "dropped %d of %d detections with a non-finite position, velocity or radius (%d so far)",
+                dropped,
+                detected,
+                self.dropped_total,
+            )
         if invalid:
             self.lidar_invalid_total += invalid
-            log.warning("%d of %d LiDAR rays had a non-finite range, read as the sensor range %g m (%d so far)",
-                        invalid, self.lidar_rays, self.env_config.sensor_range, self.lidar_invalid_total)
+            log.warning(
+                "%d of %d LiDAR rays had a non-finite range, read as the sensor range %g m (%d so far)",
+                invalid,
+                self.lidar_rays,
+                self.env_config.sensor_range,
+                self.lidar_invalid_total,
+            )
         rs = _robot_state(robot_state)
         return Decision(self._command(action, rs), action, detected, dropped, in_range, used, invalid)
 

@@ -60,15 +60,16 @@ def load_source(source: str | pathlib.Path, *, step: int | None = None) -> Polic
         params = jax.device_get(state.params)
         return PolicySource(config, params, {"run_dir": str(path), "update": int(state.update)})
     if step is not None:
-        raise ConfigError(f"step selects a checkpoint of a run directory; {str(source)!r} is not one "
-                          "(no checkpoints/ in it)")
+        raise ConfigError(
+            f"step selects a checkpoint of a run directory; {str(source)!r} is not one (no checkpoints/ in it)"
+        )
     if path.is_dir() and not (path / "params.npz").exists() and (path / "config.yaml").exists():
-        raise ConfigError(f"{str(path)!r} looks like a tgrf-train run directory without checkpoints/: nothing "
-                          "trained to load")
+        raise ConfigError(
+            f"{str(path)!r} looks like a tgrf-train run directory without checkpoints/: nothing trained to load"
+        )
     config, params, meta = pretrained.load(str(source))
     exported = pretrained.resolve(str(source))
-    origin = {"pretrained": str(source), **{k: meta[k] for k in ("experiment", "row", "seed", "update")
-                                             if k in meta}}
+    origin = {"pretrained": str(source), **{k: meta[k] for k in ("experiment", "row", "seed", "update") if k in meta}}
     return PolicySource(config, params, origin, exported if is_exported(exported) else None)
 
 
@@ -117,8 +118,9 @@ class PolicyStep:
         from tgrf_jax.env.types import Obs
 
         if len(rest) != 1 + bool(self.lidar_rays):
-            raise TypeError(f"the policy step takes {len(self.input_names)} inputs {self.input_names}; got "
-                            f"{4 + len(rest)}")
+            raise TypeError(
+                f"the policy step takes {len(self.input_names)} inputs {self.input_names}; got {4 + len(rest)}"
+            )
         if self.lidar_rays:
             lidar, state = rest
             # NaN: no return. Ranges beyond the sensor range are clipped inside the network's scaling.
@@ -130,13 +132,20 @@ class PolicyStep:
         cuts = np.cumsum(self._sizes)[:-1].tolist()
         parts = jnp.split(state, cuts) if cuts else [state]
         carry = jax.tree_util.tree_unflatten(
-            self._treedef, [p.reshape((1,) + leaf.shape[1:]) for p, leaf in zip(parts, self._leaves)])
+            self._treedef, [p.reshape((1,) + leaf.shape[1:]) for p, leaf in zip(parts, self._leaves)]
+        )
         n = self.num_humans
         # A float mask keeps every input one dtype for runtimes fed from other languages; 0.5 splits 0 from 1.
-        obs = Obs(robot_node=robot_node[None], robot_vel=robot_vel[None], humans=humans[None],
-                  human_mask=(human_mask > 0.5)[None], human_vel=jnp.zeros((1, n, 2), jnp.float32),
-                  human_radius=jnp.zeros((1, n), jnp.float32), lidar=lidar[None],
-                  obstacles=jax.tree_util.tree_map(lambda x: x[None], empty_obstacles()))
+        obs = Obs(
+            robot_node=robot_node[None],
+            robot_vel=robot_vel[None],
+            humans=humans[None],
+            human_mask=(human_mask > 0.5)[None],
+            human_vel=jnp.zeros((1, n, 2), jnp.float32),
+            human_radius=jnp.zeros((1, n), jnp.float32),
+            lidar=lidar[None],
+            obstacles=jax.tree_util.tree_map(lambda x: x[None], empty_obstacles()),
+        )
         carry, pi, _ = self.net.apply(self.params, carry, obs, None)
         new_state = jnp.concatenate([leaf.reshape(-1) for leaf in jax.tree_util.tree_leaves(carry)])
         return pi.mean()[0], new_state

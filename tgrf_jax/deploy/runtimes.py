@@ -20,12 +20,15 @@ RUNTIMES = ("jax", "onnx", "stablehlo")
 
 def _need_file(directory, name: str, runtime: str) -> pathlib.Path:
     if directory is None:
-        raise ConfigError(f"runtime {runtime!r} runs an exported file; load a tgrf-export directory "
-                          f"(this policy was not exported: run tgrf-export first), or use runtime 'jax'")
+        raise ConfigError(
+            f"runtime {runtime!r} runs an exported file; load a tgrf-export directory "
+            f"(this policy was not exported: run tgrf-export first), or use runtime 'jax'"
+        )
     path = pathlib.Path(directory) / name
     if not path.is_file():
-        raise ConfigError(f"{str(path)!r} does not exist: the export holds no {runtime} file "
-                          "(tgrf-export --format chose others)")
+        raise ConfigError(
+            f"{str(path)!r} does not exist: the export holds no {runtime} file (tgrf-export --format chose others)"
+        )
     return path
 
 
@@ -49,8 +52,9 @@ class OnnxRuntime:
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
         options.log_severity_level = 3  # unused-initializer notices are noise for the user
-        self._session = ort.InferenceSession(str(_need_file(directory, ONNX_FILE, "onnx")), options,
-                                             providers=["CPUExecutionProvider"])
+        self._session = ort.InferenceSession(
+            str(_need_file(directory, ONNX_FILE, "onnx")), options, providers=["CPUExecutionProvider"]
+        )
         # the file's own input order: policy.INPUT_NAMES, or LIDAR_INPUT_NAMES for a policy that reads a scan
         self._names = [i.name for i in self._session.get_inputs()]
 
@@ -69,7 +73,9 @@ class StableHloRuntime:
         try:
             exported = jax.export.deserialize(bytearray(path.read_bytes()))
         except Exception as e:  # a damaged file fails deep inside the flatbuffer reader
-            raise ConfigError(f"{str(path)!r} is not a readable jax.export artifact ({type(e).__name__}: {e})") from None
+            raise ConfigError(
+                f"{str(path)!r} is not a readable jax.export artifact ({type(e).__name__}: {e})"
+            ) from None
         self._fn = jax.jit(exported.call)
 
     def __call__(self, *inputs):

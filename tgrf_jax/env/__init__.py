@@ -17,6 +17,17 @@ from tgrf_jax.env.types import (
 )
 
 __all__ = [
-    "CrowdNavEnv", "EnvParams", "EnvState", "Humans", "Info", "Obs", "Robot",
-    "RUNNING", "SUCCESS", "COLLISION", "TIMEOUT", "OBSTACLE_COLLISION", "OUTCOME_NAMES",
+    "CrowdNavEnv",
+    "EnvParams",
+    "EnvState",
+    "Humans",
+    "Info",
+    "Obs",
+    "Robot",
+    "RUNNING",
+    "SUCCESS",
+    "COLLISION",
+    "TIMEOUT",
+    "OBSTACLE_COLLISION",
+    "OUTCOME_NAMES",
 ]

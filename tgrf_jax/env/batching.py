@@ -43,8 +43,9 @@ def cond_gathered(pred, true_fn, false_fn, *operands, chunk: int = 32):
         count = jnp.sum(pred, dtype=jnp.int32)
 
         def gather(rows):
-            return tuple(jax.tree_util.tree_map(lambda x, a: x if a is None else x[rows], op, ax)
-                         for op, ax in zip(ops, axes))
+            return tuple(
+                jax.tree_util.tree_map(lambda x, a: x if a is None else x[rows], op, ax) for op, ax in zip(ops, axes)
+            )
 
         def run_chunk(c, out):
             sel = lax.dynamic_slice_in_dim(order, c * size, size)

@@ -9,7 +9,7 @@ predictions and the new observation.
 from __future__ import annotations
 
 import pathlib
-from typing import Mapping
+from collections.abc import Mapping
 
 import chex
 import jax
@@ -96,7 +96,9 @@ def move_robot(robot: Robot, action, params: EnvParams, kinematics: str) -> tupl
 def swept_min_distance(rel_start, rel_motion):
     """Smallest |rel_start + s * rel_motion| over s in [0, 1], per row (N,)."""
     denom = jnp.square(rel_motion[:, 0]) + jnp.square(rel_motion[:, 1])
-    s = jnp.clip(-(rel_start[:, 0] * rel_motion[:, 0] + rel_start[:, 1] * rel_motion[:, 1]) / jnp.maximum(denom, 1e-12), 0.0, 1.0)
+    s = jnp.clip(
+        -(rel_start[:, 0] * rel_motion[:, 0] + rel_start[:, 1] * rel_motion[:, 1]) / jnp.maximum(denom, 1e-12), 0.0, 1.0
+    )
     return norm(rel_start + s[:, None] * rel_motion)
 
 
@@ -123,7 +125,9 @@ class CrowdNavEnv:
     # Environments with equal configs are interchangeable, so jit caches keyed on them are shared.
     def __eq__(self, other):
         return isinstance(other, CrowdNavEnv) and (self.config, self.reward_config) == (
-            other.config, other.reward_config)
+            other.config,
+            other.reward_config,
+        )
 
     def __hash__(self):
         return hash((self.config, self.reward_config))
@@ -180,7 +184,8 @@ class CrowdNavEnv:
         num_resets = max(1, min(int(num_resets), num_envs))
         k_step, k_reset = jax.random.split(key)
         obs, next_state, reward, terminated, truncated, info = jax.vmap(self.step_env, in_axes=(0, 0, 0, None))(
-            jax.random.split(k_step, num_envs), state, action, params)
+            jax.random.split(k_step, num_envs), state, action, params
+        )
         done = terminated | truncated
         reset_obs, reset_state = self._fresh_episodes(k_reset, params, num_resets, jnp.sum(done, dtype=jnp.int32))
         slot = (jnp.cumsum(done.astype(jnp.int32)) - 1) % num_resets
@@ -200,14 +205,14 @@ class CrowdNavEnv:
         keys = jax.random.split(key, num_resets)
         chunk = min(_RESET_CHUNK, num_resets)
         reset_batch = jax.vmap(self.reset_env, in_axes=(0, None))
-        fresh = jax.tree_util.tree_map(lambda s: jnp.zeros((num_resets,) + s.shape[1:], s.dtype),
-                                       jax.eval_shape(reset_batch, keys[:chunk], params))
+        fresh = jax.tree_util.tree_map(
+            lambda s: jnp.zeros((num_resets,) + s.shape[1:], s.dtype), jax.eval_shape(reset_batch, keys[:chunk], params)
+        )
 
         def run_chunk(c, fresh):
             start = jnp.minimum(c * chunk, num_resets - chunk)  # the last chunk overlaps: recomputed, identical
             part = reset_batch(jax.lax.dynamic_slice_in_dim(keys, start, chunk), params)
-            return jax.tree_util.tree_map(lambda f, p: jax.lax.dynamic_update_slice_in_dim(f, p, start, 0),
-                                          fresh, part)
+            return jax.tree_util.tree_map(lambda f, p: jax.lax.dynamic_update_slice_in_dim(f, p, start, 0), fresh, part)
 
         needed = jnp.minimum(num_done, num_resets)
         return jax.lax.fori_loop(0, (needed + chunk - 1) // chunk, run_chunk, fresh)
@@ -226,10 +231,12 @@ class CrowdNavEnv:
         robot = scenario.robot_start(k_robot, params, sampler, index, tries)
         layout, dropped = self._layout(jax.random.fold_in(key, 4), params, robot, sampler, index)
         active = scenario.active_slots(jax.random.fold_in(key, 2), params, self.config.num_humans)
-        humans = scenario.spawn_humans(k_humans, params, robot, self.config.num_humans, tries, active, sampler, index,
-                                       layout)
-        neighbor_dist = scenario.uniform(jax.random.fold_in(key, 1), (), params.orca_neighbor_dist_min,
-                                         params.orca_neighbor_dist_max)
+        humans = scenario.spawn_humans(
+            k_humans, params, robot, self.config.num_humans, tries, active, sampler, index, layout
+        )
+        neighbor_dist = scenario.uniform(
+            jax.random.fold_in(key, 1), (), params.orca_neighbor_dist_min, params.orca_neighbor_dist_max
+        )
         state = EnvState(
             robot=robot,
             humans=humans,
@@ -264,8 +271,10 @@ class CrowdNavEnv:
             parts.append(Obstacles(jnp.pad(vertices, ((0, 0), (0, pad), (0, 0))), counts))
         if cfg.obstacles:
             parts.append(obstacles_lib.from_polygons(cfg.obstacles, max_vertices=cfg.obstacle_vertices))
-        layout = Obstacles(jnp.concatenate([p.vertices for p in parts]),
-                           jnp.concatenate([p.num_vertices for p in parts]).astype(jnp.int32))
+        layout = Obstacles(
+            jnp.concatenate([p.vertices for p in parts]),
+            jnp.concatenate([p.num_vertices for p in parts]).astype(jnp.int32),
+        )
         # per slot: the robot's room at its start and goal from that slot alone
         single = jax.vmap(lambda v, n: Obstacles(v[None], n[None]))(layout.vertices, layout.num_vertices)
         room = jax.vmap(lambda one: obstacles_lib.clearance(jnp.stack([robot.pos, robot.goal]), one))(single)
@@ -292,8 +301,16 @@ class CrowdNavEnv:
         cfg = self.config
         if cfg.lidar_rays > 0:
             h = state.humans
-            lidar = obstacles_lib.lidar_scan(state.robot.pos, state.robot.heading, state.obstacles, h.pos, h.radius,
-                                             h.active, num_rays=cfg.lidar_rays, max_range=params.sensor_range)
+            lidar = obstacles_lib.lidar_scan(
+                state.robot.pos,
+                state.robot.heading,
+                state.obstacles,
+                h.pos,
+                h.radius,
+                h.active,
+                num_rays=cfg.lidar_rays,
+                max_range=params.sensor_range,
+            )
         else:
             lidar = jnp.zeros((0,), jnp.float32)
         return sensing.observe(state, params, predictions, visible, lidar)
@@ -307,8 +324,15 @@ class CrowdNavEnv:
 
         robot, delta_heading = move_robot(robot0, action, params, cfg.kinematics)
         layout = state.obstacles
-        human_vel = humans_lib.human_velocities(humans0, robot0 if cfg.robot_visible else None, params, cfg,
-                                                state.orca_neighbor_dist, layout, state.obstacle_table)
+        human_vel = humans_lib.human_velocities(
+            humans0,
+            robot0 if cfg.robot_visible else None,
+            params,
+            cfg,
+            state.orca_neighbor_dist,
+            layout,
+            state.obstacle_table,
+        )
         humans = humans0.replace(pos=humans0.pos + human_vel * params.dt, vel=human_vel)
 
         # Outcome of the action, judged on the post-step state (collisions swept over the step).
@@ -321,19 +345,26 @@ class CrowdNavEnv:
         else:
             hit_obstacle, obstacle_dist = jnp.zeros((), bool), jnp.full((), jnp.inf)
         collided = hit_human | hit_obstacle
-        dmin = jnp.min(jnp.where(humans.active,
-                                 sensing.edge_distances(robot.pos, humans.pos, params.robot_radius, humans.radius),
-                                 jnp.inf), initial=jnp.inf)
+        dmin = jnp.min(
+            jnp.where(
+                humans.active,
+                sensing.edge_distances(robot.pos, humans.pos, params.robot_radius, humans.radius),
+                jnp.inf,
+            ),
+            initial=jnp.inf,
+        )
         goal_dist = jnp.linalg.norm(robot.pos - robot.goal)
         reached = goal_dist < params.goal_tolerance
 
         step_count = state.step_count + 1
         if cfg.num_humans > 0:
             sampler = scenario.sampler(cfg)
-            humans = scenario.change_goals(k_goal, humans, robot, params, step_count, cfg.goal_tries, sampler,
-                                           state.scenario, layout)
-            humans = scenario.respawn_arrived(k_respawn, humans, robot, params, cfg.spawn_tries, sampler,
-                                              state.scenario, layout)
+            humans = scenario.change_goals(
+                k_goal, humans, robot, params, step_count, cfg.goal_tries, sampler, state.scenario, layout
+            )
+            humans = scenario.respawn_arrived(
+                k_respawn, humans, robot, params, cfg.spawn_tries, sampler, state.scenario, layout
+            )
         next_state = state.replace(robot=robot, humans=humans, step_count=step_count)
 
         visible = self.visible(next_state, params)
@@ -395,8 +426,9 @@ class CrowdNavEnv:
         if self.config.predictor == "gst":
             pred = gst_history.predictions(params.predictor, state.history)
             return pred.means, visible & pred.out_mask
-        return prediction.predict(state.humans, params, self.config, state.orca_neighbor_dist,
-                                  state.obstacles, state.obstacle_table), visible
+        return prediction.predict(
+            state.humans, params, self.config, state.orca_neighbor_dist, state.obstacles, state.obstacle_table
+        ), visible
 
     def _future_intrusion(self, state: EnvState, visible, predictions, params):
         """itr_future: robot centre within intrusion_radius of a visible human's true position at t+1..t+K."""
@@ -406,8 +438,15 @@ class CrowdNavEnv:
         if cfg.predictor == "truth":
             future = predictions
         else:
-            future = prediction.true_future(state.humans, params, cfg, cfg.pred_horizon, state.orca_neighbor_dist,
-                                            state.obstacles, state.obstacle_table)
+            future = prediction.true_future(
+                state.humans,
+                params,
+                cfg,
+                cfg.pred_horizon,
+                state.orca_neighbor_dist,
+                state.obstacles,
+                state.obstacle_table,
+            )
         dist = norm(future - state.robot.pos)
         dist = jnp.where(visible[:, None], dist, jnp.inf)
         nearest = jnp.min(dist, initial=jnp.inf)

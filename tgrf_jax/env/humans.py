@@ -22,8 +22,15 @@ def preferred_velocity(pos, goal):
 ORCA_RADIUS_PAD = 0.01
 
 
-def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, config: EnvConfig, neighbor_dist,
-                     obstacles: Obstacles | None = None, obstacle_table: orca.ObstacleTable | None = None):
+def human_velocities(
+    humans: Humans,
+    robot: Robot | None,
+    params: EnvParams,
+    config: EnvConfig,
+    neighbor_dist,
+    obstacles: Obstacles | None = None,
+    obstacle_table: orca.ObstacleTable | None = None,
+):
     """New velocities (N, 2) of all humans from the current joint state.
 
     `robot` is None when humans do not see the robot (the default); otherwise it joins the solve as an extra
@@ -52,17 +59,40 @@ def human_velocities(humans: Humans, robot: Robot | None, params: EnvParams, con
         if robot is not None:
             pref = pref.at[-1].set(robot.vel)  # the robot's "preference" is what it is doing
         new_vel = orca.solve(
-            pos, vel, radius + ORCA_RADIUS_PAD + params.orca_safety_space, pref, v_pref,
-            time_horizon=params.orca_time_horizon, dt=params.dt,
-            neighbor_dist=neighbor_dist, max_neighbors=config.max_neighbors, neighbor_mask=present,
-            **({} if obstacles is None else dict(
-                obstacles=(obstacles.vertices, obstacles.num_vertices) if obstacle_table is None else obstacle_table,
-                time_horizon_obst=params.orca_time_horizon_obst)),
+            pos,
+            vel,
+            radius + ORCA_RADIUS_PAD + params.orca_safety_space,
+            pref,
+            v_pref,
+            time_horizon=params.orca_time_horizon,
+            dt=params.dt,
+            neighbor_dist=neighbor_dist,
+            max_neighbors=config.max_neighbors,
+            neighbor_mask=present,
+            **(
+                {}
+                if obstacles is None
+                else dict(
+                    obstacles=(obstacles.vertices, obstacles.num_vertices)
+                    if obstacle_table is None
+                    else obstacle_table,
+                    time_horizon_obst=params.orca_time_horizon_obst,
+                )
+            ),
         )
     else:
         new_vel = social_force.step(
-            pos, vel, goal, radius, v_pref, a=params.sf_a, b=params.sf_b, ki=params.sf_ki, dt=params.dt,
-            neighbor_mask=present, obstacles=obstacles,
+            pos,
+            vel,
+            goal,
+            radius,
+            v_pref,
+            a=params.sf_a,
+            b=params.sf_b,
+            ki=params.sf_ki,
+            dt=params.dt,
+            neighbor_mask=present,
+            obstacles=obstacles,
         )
     # Inactive slots stay where they are parked.
     return jnp.where(humans.active[:, None], new_vel[:n], 0.0)

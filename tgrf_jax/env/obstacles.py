@@ -74,8 +74,10 @@ def from_polygons(polygons, num_slots=None, max_vertices=None, *, field: str = "
     num_slots = len(polys) if num_slots is None else int(num_slots)
     max_vertices = max(longest, 2) if max_vertices is None else int(max_vertices)
     if len(polys) > num_slots:
-        raise ConfigError(f"{field} has {len(polys)} polygons but only {num_slots} obstacle slots; allowed: at "
-                          f"most {num_slots} polygons")
+        raise ConfigError(
+            f"{field} has {len(polys)} polygons but only {num_slots} obstacle slots; allowed: at "
+            f"most {num_slots} polygons"
+        )
     if longest > max_vertices:
         raise ConfigError(f"{field} has a polygon of {longest} vertices; allowed: at most {max_vertices}")
     vertices = np.zeros((num_slots, max_vertices, 2), np.float32)
@@ -210,10 +212,8 @@ def swept_distance(p0, p1, obstacles: Obstacles):
     best = jnp.full(px.shape, jnp.inf, jnp.float32)
     for ax, ay, bx, by, valid in zip(*edges):
         sq = jnp.minimum(
-            jnp.minimum(_closest_on_segment(px, py, ax, ay, bx, by)[2],
-                        _closest_on_segment(qx, qy, ax, ay, bx, by)[2]),
-            jnp.minimum(_closest_on_segment(ax, ay, px, py, qx, qy)[2],
-                        _closest_on_segment(bx, by, px, py, qx, qy)[2]),
+            jnp.minimum(_closest_on_segment(px, py, ax, ay, bx, by)[2], _closest_on_segment(qx, qy, ax, ay, bx, by)[2]),
+            jnp.minimum(_closest_on_segment(ax, ay, px, py, qx, qy)[2], _closest_on_segment(bx, by, px, py, qx, qy)[2]),
         )
         sq = jnp.where(_segments_cross(px, py, qx, qy, ax, ay, bx, by), 0.0, sq)
         best = jnp.where(valid, jnp.minimum(best, sq), best)
@@ -234,8 +234,9 @@ def line_of_sight(origin, targets, obstacles: Obstacles):
     return ~blocked
 
 
-def lidar_scan(origin, heading, obstacles: Obstacles, circle_pos, circle_radius, circle_mask, *, num_rays: int,
-               max_range):
+def lidar_scan(
+    origin, heading, obstacles: Obstacles, circle_pos, circle_radius, circle_mask, *, num_rays: int, max_range
+):
     """Ranges (num_rays,) float32 of a 2-D LiDAR at `origin` (2,) with heading `heading` () rad.
 
     Ray k points at heading + 2 pi k / num_rays (counter-clockwise; ray 0 along the heading: the body frame a

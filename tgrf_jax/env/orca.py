@@ -76,8 +76,16 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["CPU_BLOCK", "RVO_EPSILON", "WHOLE_BATCH", "ObstacleTable", "default_block", "process_obstacles", "solve",
-           "solve_with_info"]
+__all__ = [
+    "CPU_BLOCK",
+    "RVO_EPSILON",
+    "WHOLE_BATCH",
+    "ObstacleTable",
+    "default_block",
+    "process_obstacles",
+    "solve",
+    "solve_with_info",
+]
 
 RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (Definitions.h): parallel-line threshold in the LPs.
 _BIG = 1e30  # distance key of non-neighbours when ranking (finite, unlike inf)
@@ -211,9 +219,18 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
 
     def pair_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq):
         rpx, rpy = offsets(px, py)
-        return _orca_lines(rpx, rpy, vx[None, :, :] - vx[:, None, :], vy[None, :, :] - vy[:, None, :],
-                           rad[None, :, :] + rad[:, None, :], vx[None, :, :], vy[None, :, :],
-                           inv_th[None, None, :], inv_dt[None, None, :], tie_sign)
+        return _orca_lines(
+            rpx,
+            rpy,
+            vx[None, :, :] - vx[:, None, :],
+            vy[None, :, :] - vy[:, None, :],
+            rad[None, :, :] + rad[:, None, :],
+            vx[None, :, :],
+            vy[None, :, :],
+            inv_th[None, None, :],
+            inv_dt[None, None, :],
+            tie_sign,
+        )
 
     def line_rank(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq):
         """b's place in a's neighbour order (ties: lower index first), or n where b is not an active
@@ -224,7 +241,7 @@ def _neighbour_lines(px, py, vx, vy, rad, mask, inv_th, inv_dt, range_sq, k):
         key = jnp.where(valid, d2, _BIG)
         rank = jnp.zeros(key.shape, jnp.int32)
         for c in range(n):
-            kc = key[c:c + 1]
+            kc = key[c : c + 1]
             rank = rank + ((kc < key) | ((kc == key) & (c < other_idx))).astype(jnp.int32)
         return jnp.where(valid & (rank < k), rank, n).astype(jnp.float32)
 
@@ -459,7 +476,9 @@ def _lp2_dense(lines, rank, valid, radius, optx, opty, direction_opt, start=None
     state = _lp2_init(lines, rank, valid, radius, optx, opty, direction_opt, start)
     r, _, fail_at = lax.while_loop(
         lambda s: jnp.min(s[1]) < _none_key(n),
-        lambda s: _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, s, bounds), state)
+        lambda s: _lp2_round(lines, rank, valid, radius, optx, opty, direction_opt, s, bounds),
+        state,
+    )
     return r, fail_at
 
 
@@ -501,8 +520,9 @@ def _lp3_round(lines, rank, valid, radius, state, obst=None):
     else:
         s0, fail_o = _obstacle_walk(obst, radius, nx, ny, True)
         walked = fail_o == obst.count
-        s, lp2_fail = _lp2_dense(projected, rank, qvalid, radius, nx, ny, True, start=(s0, walked),
-                                 bounds=_obstacle_bounds(obst, projected))
+        s, lp2_fail = _lp2_dense(
+            projected, rank, qvalid, radius, nx, ny, True, start=(s0, walked), bounds=_obstacle_bounds(obst, projected)
+        )
         ok = walked & (lp2_fail == n)
     r = jnp.where(ok, s, r)  # a failed inner LP2 (rounding) keeps the result, as in RVO2
     distance = _det(dix[0], diy[0], pix[0] - jnp.real(r), piy[0] - jnp.imag(r))
@@ -644,9 +664,22 @@ def _polygon_edges(vx, vy, nv, capacity):
     # isConvex_: leftOf(previous, point, next) >= 0, and true for both ends of a wall (2 vertices)
     conv = (n == 2) | (_left_of(px, py, vx, vy, nx, ny) >= 0.0)
     base = jnp.arange(m, dtype=jnp.int32)[:, None, None] * v
-    fields = dict(ax=vx, ay=vy, bx=nx, by=ny, conv_a=conv, conv_b=at(conv, nxt), dpx=at(ux, prv), dpy=at(uy, prv),
-                  dx=ux, dy=uy, dnx=at(ux, nxt), dny=at(uy, nxt), nxt=jnp.broadcast_to(base + nxt, vx.shape),
-                  alive=alive)
+    fields = dict(
+        ax=vx,
+        ay=vy,
+        bx=nx,
+        by=ny,
+        conv_a=conv,
+        conv_b=at(conv, nxt),
+        dpx=at(ux, prv),
+        dpy=at(uy, prv),
+        dx=ux,
+        dy=uy,
+        dnx=at(ux, nxt),
+        dny=at(uy, nxt),
+        nxt=jnp.broadcast_to(base + nxt, vx.shape),
+        alive=alive,
+    )
     pad = capacity - m * v
     out = {}
     for name, x in fields.items():
@@ -708,8 +741,7 @@ def _tree_level(state: _TreeState) -> _TreeState:
     own = jnp.where(waiting, lst, -2 - slot)
     pairs = (own[:, None] == own[None]) & (slot[:, None] != slot[None])
     ex, ey = e.bx - e.ax, e.by - e.ay
-    _, left, right = classify(*(x[:, None] for x in (e.ax, e.ay, ex, ey)),
-                              *(x[None] for x in (e.ax, e.ay, e.bx, e.by)))
+    _, left, right = classify(*(x[:, None] for x in (e.ax, e.ay, ex, ey)), *(x[None] for x in (e.ax, e.ay, e.bx, e.by)))
     # both counts in one reduction (one pass over the pairs): n_left in the low 16 bits, n_right above
     packed = jnp.where(pairs, (~right).astype(jnp.int32) + ((~left).astype(jnp.int32) << 16), 0)
     counts = jnp.sum(packed, axis=1, dtype=jnp.int32)
@@ -752,17 +784,35 @@ def _tree_level(state: _TreeState) -> _TreeState:
 
         true = jnp.ones_like(split)
         edges = _Edges(
-            ax=put(e.ax, sx), ay=put(e.ay, sy), bx=put(jnp.where(split, sx, e.bx), e.bx),
-            by=put(jnp.where(split, sy, e.by), e.by), conv_a=put(e.conv_a, true),
-            conv_b=put(e.conv_b | split, e.conv_b), dpx=put(e.dpx, e.dx), dpy=put(e.dpy, e.dy),
-            dx=put(e.dx, e.dx), dy=put(e.dy, e.dy), dnx=put(jnp.where(split, e.dx, e.dnx), e.dnx),
-            dny=put(jnp.where(split, e.dy, e.dny), e.dny), nxt=put(jnp.where(split, new_slot, e.nxt), e.nxt),
-            alive=put(e.alive, true))
+            ax=put(e.ax, sx),
+            ay=put(e.ay, sy),
+            bx=put(jnp.where(split, sx, e.bx), e.bx),
+            by=put(jnp.where(split, sy, e.by), e.by),
+            conv_a=put(e.conv_a, true),
+            conv_b=put(e.conv_b | split, e.conv_b),
+            dpx=put(e.dpx, e.dx),
+            dpy=put(e.dpy, e.dy),
+            dx=put(e.dx, e.dx),
+            dy=put(e.dy, e.dy),
+            dnx=put(jnp.where(split, e.dx, e.dnx), e.dnx),
+            dny=put(jnp.where(split, e.dy, e.dny), e.dny),
+            nxt=put(jnp.where(split, new_slot, e.nxt), e.nxt),
+            alive=put(e.alive, true),
+        )
         # this level's facts per slot, the new pieces included (they wait on the other side of j's node);
         # the new piece inherits j's pair (with j's old next edge), and j's pair is now (j, new piece)
-        return (edges, put(key, key), put(new_lst, child + left.astype(jnp.int32)), put(chosen, ~true),
-                put(chain, ~true), put(left, ~left), put(node, node), put(state.pair_open | split, state.pair_open),
-                put(state.pair_node, state.pair_node), put(state.pair_flag, state.pair_flag))
+        return (
+            edges,
+            put(key, key),
+            put(new_lst, child + left.astype(jnp.int32)),
+            put(chosen, ~true),
+            put(chain, ~true),
+            put(left, ~left),
+            put(node, node),
+            put(state.pair_open | split, state.pair_open),
+            put(state.pair_node, state.pair_node),
+            put(state.pair_flag, state.pair_flag),
+        )
 
     unsplit = (e, key, new_lst, chosen, chain, left, node, state.pair_open, state.pair_node, state.pair_flag)
     if jax.default_backend() == "cpu":
@@ -779,8 +829,9 @@ def _tree_level(state: _TreeState) -> _TreeState:
     decide_f = pair_open & ~decide_e & (chosen_f | chain)
     part = pair_open & ~decide_e & ~decide_f & (left != left_f)
     pair_node = jnp.where(decide_e, slot, jnp.where(decide_f, f, jnp.where(part, node, pair_node)))
-    pair_flag = jnp.where(decide_e, ~left_f & ~chain, jnp.where(decide_f, left | chain, jnp.where(part, left,
-                                                                                                  pair_flag)))
+    pair_flag = jnp.where(
+        decide_e, ~left_f & ~chain, jnp.where(decide_f, left | chain, jnp.where(part, left, pair_flag))
+    )
     pair_open = pair_open & ~(decide_e | decide_f | part)
     used = state.used + jnp.sum(split, axis=0, dtype=jnp.int32)
     return _TreeState(edges, key, lst, used, pair_open, pair_node, pair_flag)
@@ -792,9 +843,15 @@ def _obstacle_table(vx, vy, nv, capacity) -> _ObstacleTable:
     edges = _polygon_edges(vx, vy, nv, capacity)
     n_slots, b = edges.ax.shape
     slot = jnp.broadcast_to(jnp.arange(n_slots, dtype=jnp.int32)[:, None], (n_slots, b))
-    state = _TreeState(edges, slot, jnp.where(edges.alive, 0, -1), jnp.full((b,), vx.shape[0] * vx.shape[1],
-                                                                           jnp.int32),
-                       edges.alive, slot, jnp.zeros((n_slots, b), bool))
+    state = _TreeState(
+        edges,
+        slot,
+        jnp.where(edges.alive, 0, -1),
+        jnp.full((b,), vx.shape[0] * vx.shape[1], jnp.int32),
+        edges.alive,
+        slot,
+        jnp.zeros((n_slots, b), bool),
+    )
     state = lax.while_loop(lambda s: jnp.any(s.lst >= 0), _tree_level, state)
     e = state.edges
 
@@ -809,15 +866,20 @@ def _obstacle_table(vx, vy, nv, capacity) -> _ObstacleTable:
 
 
 ObstacleTable = _ObstacleTable  # the public name of a processed obstacle set (see process_obstacles)
-_TABLE_LEAVES = len(jax.tree.leaves(_ObstacleTable(_Edges(*(0,) * len(_Edges._fields)),
-                                                   *(0,) * (len(_ObstacleTable._fields) - 1))))
+_TABLE_LEAVES = len(
+    jax.tree.leaves(_ObstacleTable(_Edges(*(0,) * len(_Edges._fields)), *(0,) * (len(_ObstacleTable._fields) - 1)))
+)
 
 
 def _process_scenes(vertices, num_vertices):
     """vertices (B, M, V, 2), num_vertices (B, M) -> the tables' leaves, each (B, E)."""
     vertices = vertices.astype(jnp.float32)
-    table = _obstacle_table(vertices[..., 0].transpose(1, 2, 0), vertices[..., 1].transpose(1, 2, 0),
-                            num_vertices.astype(jnp.int32).T, _edge_capacity(vertices.shape[1] * vertices.shape[2]))
+    table = _obstacle_table(
+        vertices[..., 0].transpose(1, 2, 0),
+        vertices[..., 1].transpose(1, 2, 0),
+        num_vertices.astype(jnp.int32).T,
+        _edge_capacity(vertices.shape[1] * vertices.shape[2]),
+    )
     return tuple(x.T for x in jax.tree.leaves(table))
 
 
@@ -828,8 +890,9 @@ def _process_batch(vertices, num_vertices):
 
 @_process_batch.def_vmap
 def _process_batch_rule(axis_size, in_batched, vertices, num_vertices):
-    args = [x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape)
-            for x, bt in zip((vertices, num_vertices), in_batched)]
+    args = [
+        x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, bt in zip((vertices, num_vertices), in_batched)
+    ]
     inner = args[0].shape[1]
     out = _process_batch(*(x.reshape((axis_size * inner,) + x.shape[2:]) for x in args))
     return tuple(x.reshape((axis_size, inner) + x.shape[1:]) for x in out), (True,) * len(out)
@@ -842,8 +905,9 @@ def _process_scene(vertices, num_vertices):
 
 @_process_scene.def_vmap
 def _process_scene_rule(axis_size, in_batched, vertices, num_vertices):
-    args = [x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape)
-            for x, bt in zip((vertices, num_vertices), in_batched)]
+    args = [
+        x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, bt in zip((vertices, num_vertices), in_batched)
+    ]
     out = _process_batch(*args)
     return out, (True,) * len(out)
 
@@ -858,16 +922,17 @@ def process_obstacles(vertices, num_vertices) -> ObstacleTable:
     vertices = jnp.asarray(vertices, jnp.float32)
     num_vertices = jnp.asarray(num_vertices, jnp.int32)
     if vertices.ndim != 3 or vertices.shape[2] != 2 or num_vertices.shape != vertices.shape[:1]:
-        raise ValueError(f"obstacles: vertices {vertices.shape} must be (M, V, 2) and num_vertices "
-                         f"{num_vertices.shape} (M,)")
+        raise ValueError(
+            f"obstacles: vertices {vertices.shape} must be (M, V, 2) and num_vertices {num_vertices.shape} (M,)"
+        )
     if vertices.shape[0] * vertices.shape[1] == 0:
         raise ValueError("process_obstacles needs at least one vertex slot (M * V > 0)")
     return _table_from_leaves(_process_scene(vertices, num_vertices))
 
 
 def _table_from_leaves(leaves) -> ObstacleTable:
-    edges = _Edges(*leaves[:len(_Edges._fields)])
-    return _ObstacleTable(edges, *leaves[len(_Edges._fields):])
+    edges = _Edges(*leaves[: len(_Edges._fields)])
+    return _ObstacleTable(edges, *leaves[len(_Edges._fields) :])
 
 
 # -- per agent (problem p = agent * B + scene): obstacle neighbours and their ORCA lines
@@ -896,8 +961,9 @@ def _neighbour_key(ax, ay, bx, by, alive, px, py, range_sq):
     return jnp.where(ok, d, _BIG)
 
 
-def _tie_order(key, nxt, prv, tie_ax, tie_ay, tie_bx, tie_by, tie_flag, tie_pax, tie_pay, tie_pbx, tie_pby,
-               tie_pflag, px, py):
+def _tie_order(
+    key, nxt, prv, tie_ax, tie_ay, tie_bx, tie_by, tie_flag, tie_pax, tie_pay, tie_pbx, tie_pby, tie_pflag, px, py
+):
     """Each edge's tie-breaker among neighbours at the same distance (``key``'s shape, edges first): the tree
     query's order for two adjacent edges whose distances tie (the shared vertex is the nearest point of both),
     else the slot: 2 * slot, or 2 * min(slot of e, slot of its partner) + (0 for the one visited first, 1 for
@@ -913,8 +979,11 @@ def _tie_order(key, nxt, prv, tie_ax, tie_ay, tie_bx, tie_by, tie_flag, tie_pax,
     first_p = (_left_of(tie_pax, tie_pay, tie_pbx, tie_pby, px, py) >= 0.0) == tie_pflag  # previous edge first
     tie_n = (key < _BIG) & (at(key, nxt) == key) & (nxt != idx)
     tie_p = (key < _BIG) & (at(key, prv) == key) & (prv != idx) & ~tie_n
-    return jnp.where(tie_n, 2 * jnp.minimum(idx, nxt) + (~first).astype(jnp.int32),
-                     jnp.where(tie_p, 2 * jnp.minimum(idx, prv) + first_p.astype(jnp.int32), 2 * idx))
+    return jnp.where(
+        tie_n,
+        2 * jnp.minimum(idx, nxt) + (~first).astype(jnp.int32),
+        jnp.where(tie_p, 2 * jnp.minimum(idx, prv) + first_p.astype(jnp.int32), 2 * idx),
+    )
 
 
 def _obstacle_neighbours(t: _ObstacleTable, px, py, range_sq):
@@ -977,10 +1046,12 @@ def _obstacle_line(ax, ay, bx, by, conv_a, conv_b, dpx, dpy, dx, dy, dnx, dny, p
     o2_conv = jnp.where(obl_left, conv_a, conv_b)
     o2dx, o2dy = jnp.where(obl_left, dx, dnx), jnp.where(obl_left, dy, dny)  # obstacle2->unitDir_
     nbx, nby = jnp.where(obl_right, dx, dpx), jnp.where(obl_right, dy, dpy)  # obstacle1->prevObstacle_->unitDir_
-    (llx, lly), _ = _tangent_legs(jnp.where(obl_right, r2x, r1x), jnp.where(obl_right, r2y, r1y),
-                                  jnp.where(obl_right, dist2, dist1), radius)
-    _, (rlx, rly) = _tangent_legs(jnp.where(obl_left, r1x, r2x), jnp.where(obl_left, r1y, r2y),
-                                  jnp.where(obl_left, dist1, dist2), radius)
+    (llx, lly), _ = _tangent_legs(
+        jnp.where(obl_right, r2x, r1x), jnp.where(obl_right, r2y, r1y), jnp.where(obl_right, dist2, dist1), radius
+    )
+    _, (rlx, rly) = _tangent_legs(
+        jnp.where(obl_left, r1x, r2x), jnp.where(obl_left, r1y, r2y), jnp.where(obl_left, dist1, dist2), radius
+    )
     # a non-convex vertex (usual view only: obliquely it is ignored) extends the cut-off line
     llx, lly = jnp.where(~same & ~conv_a, -dx, llx), jnp.where(~same & ~conv_a, -dy, lly)
     rlx, rly = jnp.where(~same & ~conv_b, dx, rlx), jnp.where(~same & ~conv_b, dy, rly)
@@ -1065,15 +1136,21 @@ def _obstacle_lines(t: _ObstacleTable, px, py, vx, vy, radius, max_speed, inv_th
         for j in range(n_slots):
             kj, tj = key[j], tie[j]
             better = ~done[j] & ((kj < best_key) | ((kj == best_key) & (tj < best_tie)))
-            best_key, best_tie, s = (jnp.where(better, kj, best_key), jnp.where(better, tj, best_tie),
-                                     jnp.where(better, j, s))
+            best_key, best_tie, s = (
+                jnp.where(better, kj, best_key),
+                jnp.where(better, tj, best_tie),
+                jnp.where(better, j, s),
+            )
         return s
 
     def covers(done, ax, ay, bx, by, px, py, inv_th, margin, keep, lx, ly, ldx, ldy):
         """done | the edges that the new line (where kept) covers.  One loop."""
         c1x, c1y, c2x, c2y = inv_th * (ax - px), inv_th * (ay - py), inv_th * (bx - px), inv_th * (by - py)
-        return done | (keep & (_det(c1x - lx, c1y - ly, ldx, ldy) - margin >= -RVO_EPSILON)
-                       & (_det(c2x - lx, c2y - ly, ldx, ldy) - margin >= -RVO_EPSILON))
+        return done | (
+            keep
+            & (_det(c1x - lx, c1y - ly, ldx, ldy) - margin >= -RVO_EPSILON)
+            & (_det(c2x - lx, c2y - ly, ldx, ldy) - margin >= -RVO_EPSILON)
+        )
 
     def round_of(key, tie, corners, scene, agent):
         """One round for problems of some shape S (the whole (N, B) batch, or a (C,) chunk): key, tie (E,) + S;
@@ -1097,12 +1174,20 @@ def _obstacle_lines(t: _ObstacleTable, px, py, vx, vy, radius, max_speed, inv_th
             qdx, qdy = _computed_once(lambda *a: _obstacle_line(*a)[2:4], *args)
             keep = found & (qx < jnp.inf)
             row = jnp.where(keep, count, n_slots)  # out of range: dropped
-            lines = tuple(x.at[flat(row), cols].set(flat(v), mode="drop")
-                          for x, v in zip(lines, (qx, qy, qdx, qdy)))
+            lines = tuple(x.at[flat(row), cols].set(flat(v), mode="drop") for x, v in zip(lines, (qx, qy, qdx, qdy)))
             slot = jnp.arange(n_slots, dtype=jnp.int32).reshape((n_slots,) + (1,) * len(shape))
             kept = tuple(jnp.where(keep, v, 0.0)[None] for v in (qx, qy, qdx, qdy))  # no inf in the test below
-            done = _computed_once(covers, done | (slot == s[None]), *corners, apx[None], apy[None], ainv[None],
-                                  amargin[None], keep[None], *kept)
+            done = _computed_once(
+                covers,
+                done | (slot == s[None]),
+                *corners,
+                apx[None],
+                apy[None],
+                ainv[None],
+                amargin[None],
+                keep[None],
+                *kept,
+            )
             return lines, count + keep.astype(jnp.int32), done, jnp.sum(found, dtype=jnp.int32)
 
         return step
@@ -1210,8 +1295,11 @@ def _obstacle_lp(lines, count, radius) -> _ObstacleLP:
         disc = dot * dot + radius * radius - (pix * pix + piy * piy)
         sq = _safe_sqrt(disc)
         t_left, t_right, bad = lax.fori_loop(
-            0, i, lambda j, b: _interval_update(b, pix, piy, dix, diy, *_row(lines, j), True),
-            (-dot - sq, -dot + sq, disc < 0.0))
+            0,
+            i,
+            lambda j, b: _interval_update(b, pix, piy, dix, diy, *_row(lines, j), True),
+            (-dot - sq, -dot + sq, disc < 0.0),
+        )
         return tuple(x.at[i].set(v) for x, v in zip(tables, (t_left, t_right, ~bad & (t_left <= t_right))))
 
     zeros = jnp.zeros(lines[0].shape, jnp.float32)
@@ -1241,8 +1329,11 @@ def _obstacle_bounds(obst: _ObstacleLP, lines):
     """The interval (t_left, t_right, bad), each (L, P), that the obstacle lines leave on every line of
     ``lines`` (4 x (L, P)), for :func:`_lp1_bounds`."""
     px = lines[0]
-    init = (jnp.full(px.shape, -jnp.inf, jnp.float32), jnp.full(px.shape, jnp.inf, jnp.float32),
-            jnp.zeros(px.shape, bool))
+    init = (
+        jnp.full(px.shape, -jnp.inf, jnp.float32),
+        jnp.full(px.shape, jnp.inf, jnp.float32),
+        jnp.zeros(px.shape, bool),
+    )
 
     def step(j, bounds):
         pj = (x[None] for x in obst.line(j))
@@ -1281,8 +1372,17 @@ def _linear_program2(lines, rank, radius, optx, opty, block, start=None, bounds=
     n = rank.shape[0]
 
     def solve_block(px, py, dx, dy, rank, radius, optx, opty, *extra):
-        return _lp2_dense((px, py, dx, dy), rank, rank < n, radius, optx, opty, False,
-                          start=tuple(extra[:2]) or None, bounds=extra[2:])
+        return _lp2_dense(
+            (px, py, dx, dy),
+            rank,
+            rank < n,
+            radius,
+            optx,
+            opty,
+            False,
+            start=tuple(extra[:2]) or None,
+            bounds=extra[2:],
+        )
 
     tables = tuple(lines) + (rank, radius, optx, opty) + (() if start is None else tuple(start) + tuple(bounds))
     return _blocked(solve_block, tables, (jnp.complex64, jnp.int32), block)
@@ -1298,7 +1398,8 @@ def _linear_program3(lines, rank, radius, r, fail_at, chunk, obst=None, fail_o=N
     (:func:`_lp3_round`)."""
     n = rank.shape[0]
     fail_key = _computed_once(
-        lambda rank, fail_at: _min_key(lambda j: (rank[j] < n) & (rank[j] == fail_at), rank, n), rank, fail_at)
+        lambda rank, fail_at: _min_key(lambda j: (rank[j] < n) & (rank[j] == fail_at), rank, n), rank, fail_at
+    )
     distance = jnp.zeros(r.shape, jnp.float32)
     pending = fail_at < n
     if obst is not None:
@@ -1310,8 +1411,7 @@ def _linear_program3(lines, rank, radius, r, fail_at, chunk, obst=None, fail_o=N
         pending = fail_key < _none_key(n)
 
     def lp3_step(t, s):
-        new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s, None if obst is None else obst._replace(count=t[6],
-                                                                                                  cols=t[7]))
+        new = _lp3_round(t[:4], t[4], t[4] < n, t[5], s, None if obst is None else obst._replace(count=t[6], cols=t[7]))
         return new, new[2] < _none_key(n)
 
     problems = jnp.arange(r.shape[0], dtype=jnp.int32)
@@ -1341,8 +1441,18 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
         inv_th = 1.0 / time_horizon.astype(f32)  # RVO2: invTimeHorizon = 1.0f / timeHorizon_
         inv_dt = 1.0 / dt.astype(f32)
         nd = neighbor_dist.astype(f32)
-        out = _neighbour_lines(pos[..., 0].T, pos[..., 1].T, vel[..., 0].T, vel[..., 1].T, rad.astype(f32).T,
-                               mask.astype(bool).T, inv_th, inv_dt, nd * nd, k)
+        out = _neighbour_lines(
+            pos[..., 0].T,
+            pos[..., 1].T,
+            vel[..., 0].T,
+            vel[..., 1].T,
+            rad.astype(f32).T,
+            mask.astype(bool).T,
+            inv_th,
+            inv_dt,
+            nd * nd,
+            k,
+        )
         lines = tuple(x.reshape(n, a) for x in out[:4])
         rank = out[4].reshape(n, a)
     if not obstacles:
@@ -1358,22 +1468,32 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     table = _table_from_leaves(tuple(x.T for x in obstacles))  # processed (process_obstacles): (B, E) -> (E, B)
     th_obst = jnp.broadcast_to(th_obst.astype(f32)[None], (n, b))  # (agent, scene), as the edge walk takes them
     inv_th_obst = 1.0 / th_obst  # RVO2: invTimeHorizonObst = 1.0f / timeHorizonObst_
-    obst_lines, n_obst = _obstacle_lines(table, pos[..., 0].T, pos[..., 1].T, vel[..., 0].T, vel[..., 1].T,
-                                         rad.astype(f32).T, vmax.astype(f32).T, inv_th_obst, th_obst)
+    obst_lines, n_obst = _obstacle_lines(
+        table,
+        pos[..., 0].T,
+        pos[..., 1].T,
+        vel[..., 0].T,
+        vel[..., 1].T,
+        rad.astype(f32).T,
+        vmax.astype(f32).T,
+        inv_th_obst,
+        th_obst,
+    )
     obst = _obstacle_lp(obst_lines, n_obst, radius)
     r, fail_o = _obstacle_walk(obst, radius, ox, oy, False)
     walked = fail_o == n_obst
     if k == 0:  # obstacle lines only
         r, _ = _lp3_obstacle_part(obst, radius, r, fail_o)
         return jnp.stack([scene_major(jnp.real(r)), scene_major(jnp.imag(r))], -1), scene_major(~walked)
-    r, fail_at = _linear_program2(lines, rank, radius, ox, oy, block, start=(r, walked),
-                                  bounds=_obstacle_bounds(obst, lines))
+    r, fail_at = _linear_program2(
+        lines, rank, radius, ox, oy, block, start=(r, walked), bounds=_obstacle_bounds(obst, lines)
+    )
     r = _linear_program3(lines, rank, radius, r, fail_at, block, obst, fail_o)
     rx, ry, failed = jnp.real(r), jnp.imag(r), ~walked | (fail_at < n)
     return jnp.stack([scene_major(rx), scene_major(ry)], -1), scene_major(failed)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _kernels(k: int, block: int):
     """custom_vmap wrappers for a given (static) neighbour count and block size.
 
@@ -1393,8 +1513,10 @@ def _kernels(k: int, block: int):
         args = [x if bt else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, bt in zip(args, in_batched)]
         inner = args[0].shape[1]
         out, failed = batch(*(x.reshape((axis_size * inner,) + x.shape[2:]) for x in args))
-        return (out.reshape((axis_size, inner) + out.shape[1:]),
-                failed.reshape((axis_size, inner) + failed.shape[1:])), (True, True)
+        return (
+            out.reshape((axis_size, inner) + out.shape[1:]),
+            failed.reshape((axis_size, inner) + failed.shape[1:]),
+        ), (True, True)
 
     @jax.custom_batching.custom_vmap
     def scene(*args):
@@ -1410,9 +1532,22 @@ def _kernels(k: int, block: int):
 
 
 @functools.partial(jax.jit, static_argnames=("max_neighbors", "block"))
-def solve_with_info(positions, velocities, radii, pref_velocities, max_speeds, *, time_horizon, dt,
-                    neighbor_dist, max_neighbors, neighbor_mask=None, obstacles=None, time_horizon_obst=None,
-                    block=None):
+def solve_with_info(
+    positions,
+    velocities,
+    radii,
+    pref_velocities,
+    max_speeds,
+    *,
+    time_horizon,
+    dt,
+    neighbor_dist,
+    max_neighbors,
+    neighbor_mask=None,
+    obstacles=None,
+    time_horizon_obst=None,
+    block=None,
+):
     """Like :func:`solve`, and also returns a (N,) bool: True where RVO2's linearProgram2 failed (the 2-D LP
     was infeasible) and linearProgram3 produced the velocity.  (jitted: eager calls compile once per shape.)
     `block`: problems per LP block (static; None: :func:`default_block`); results do not depend on it."""
@@ -1438,18 +1573,42 @@ def solve_with_info(positions, velocities, radii, pref_velocities, max_speeds, *
         vertices, num_vertices = obstacles
         vertices, num_vertices = f32(vertices), jnp.asarray(num_vertices, jnp.int32)
         if vertices.ndim != 3 or vertices.shape[2] != 2 or num_vertices.shape != vertices.shape[:1]:
-            raise ValueError(f"obstacles: vertices {vertices.shape} must be (M, V, 2) and num_vertices "
-                             f"{num_vertices.shape} (M,)")
+            raise ValueError(
+                f"obstacles: vertices {vertices.shape} must be (M, V, 2) and num_vertices {num_vertices.shape} (M,)"
+            )
         if time_horizon_obst is None:
             raise ValueError("obstacles need time_horizon_obst (RVO2's timeHorizonObst)")
         if vertices.shape[0] * vertices.shape[1] > 0:  # no slots: the obstacle-free program
             extra = (vertices, num_vertices, f32(time_horizon_obst))
-    return _kernels(k, block)(positions, f32(velocities), f32(radii), f32(pref_velocities), f32(max_speeds), mask,
-                              f32(time_horizon), f32(dt), f32(neighbor_dist), *extra)
+    return _kernels(k, block)(
+        positions,
+        f32(velocities),
+        f32(radii),
+        f32(pref_velocities),
+        f32(max_speeds),
+        mask,
+        f32(time_horizon),
+        f32(dt),
+        f32(neighbor_dist),
+        *extra,
+    )
 
 
-def solve(positions, velocities, radii, pref_velocities, max_speeds, *, time_horizon, dt, neighbor_dist,
-          max_neighbors, neighbor_mask=None, obstacles=None, time_horizon_obst=None):
+def solve(
+    positions,
+    velocities,
+    radii,
+    pref_velocities,
+    max_speeds,
+    *,
+    time_horizon,
+    dt,
+    neighbor_dist,
+    max_neighbors,
+    neighbor_mask=None,
+    obstacles=None,
+    time_horizon_obst=None,
+):
     """New velocities of all agents of one scene after one ORCA step, as RVO2's ``doStep`` sets them.
 
     Equivalent to an ``RVO::RVOSimulator`` holding these agents (and, if given, these obstacles, processed)
@@ -1491,7 +1650,17 @@ def solve(positions, velocities, radii, pref_velocities, max_speeds, *, time_hor
     Returns:
       (N, 2) float32 new velocities (``newVelocity_``), each within its agent's max speed (up to rounding).
     """
-    return solve_with_info(positions, velocities, radii, pref_velocities, max_speeds, time_horizon=time_horizon,
-                           dt=dt, neighbor_dist=neighbor_dist, max_neighbors=max_neighbors,
-                           neighbor_mask=neighbor_mask, obstacles=obstacles,
-                           time_horizon_obst=time_horizon_obst)[0]
+    return solve_with_info(
+        positions,
+        velocities,
+        radii,
+        pref_velocities,
+        max_speeds,
+        time_horizon=time_horizon,
+        dt=dt,
+        neighbor_dist=neighbor_dist,
+        max_neighbors=max_neighbors,
+        neighbor_mask=neighbor_mask,
+        obstacles=obstacles,
+        time_horizon_obst=time_horizon_obst,
+    )[0]

@@ -11,8 +11,7 @@ from tgrf_jax.env.humans import human_velocities
 from tgrf_jax.env.types import EnvParams, Humans
 
 
-def predict(humans: Humans, params: EnvParams, config: EnvConfig, neighbor_dist, obstacles=None,
-            obstacle_table=None):
+def predict(humans: Humans, params: EnvParams, config: EnvConfig, neighbor_dist, obstacles=None, obstacle_table=None):
     """Predicted world positions (N, K, 2) at t+1..t+K, or None for predictor 'none'.
 
     const_vel extrapolates the last applied velocity; truth rolls the human model itself forward K steps from
@@ -28,8 +27,9 @@ def predict(humans: Humans, params: EnvParams, config: EnvConfig, neighbor_dist,
     return true_future(humans, params, config, k, neighbor_dist, obstacles, obstacle_table)
 
 
-def true_future(humans: Humans, params: EnvParams, config: EnvConfig, k: int, neighbor_dist, obstacles=None,
-                obstacle_table=None):
+def true_future(
+    humans: Humans, params: EnvParams, config: EnvConfig, k: int, neighbor_dist, obstacles=None, obstacle_table=None
+):
     """Ground-truth future positions (N, k, 2) of the humans' own policy, goals frozen, robot invisible."""
 
     def advance(h: Humans, _):

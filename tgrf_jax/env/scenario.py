@@ -14,7 +14,8 @@ time never depend on luck.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +26,7 @@ from tgrf_jax.env.batching import cond_gathered
 from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.env.types import EnvParams, Humans, Robot
+
 
 def _mix32(x):
     """murmur3's 32-bit finaliser: a cheap bijective integer hash with full avalanche."""
@@ -58,9 +60,7 @@ def sample_robot(key, params: EnvParams, tries: int) -> Robot:
     dist = norm(pts[:, 0] - pts[:, 1])
     start_goal = choose(pts.reshape(tries, 4), dist - params.min_start_goal_dist).reshape(2, 2)
     zero = jnp.zeros((), jnp.float32)
-    return Robot(
-        pos=start_goal[0], vel=jnp.zeros(2), goal=start_goal[1], heading=zero + jnp.pi / 2, speed=zero
-    )
+    return Robot(pos=start_goal[0], vel=jnp.zeros(2), goal=start_goal[1], heading=zero + jnp.pi / 2, speed=zero)
 
 
 def sample_attributes(key, params: EnvParams, shape=()):
@@ -131,8 +131,9 @@ def park(humans: Humans) -> Humans:
     n = humans.pos.shape[0]
     spot = jnp.stack([PARKING + 10.0 * jnp.arange(n, dtype=jnp.float32), jnp.full((n,), PARKING)], -1)
     on = humans.active[:, None]
-    return humans.replace(pos=jnp.where(on, humans.pos, spot), goal=jnp.where(on, humans.goal, spot),
-                          vel=jnp.where(on, humans.vel, 0.0))
+    return humans.replace(
+        pos=jnp.where(on, humans.pos, spot), goal=jnp.where(on, humans.goal, spot), vel=jnp.where(on, humans.vel, 0.0)
+    )
 
 
 # ------------------------------------------------------------------------------------------------ the scenarios
@@ -185,8 +186,9 @@ def _lane_robot(key, params: EnvParams, tries: int) -> Robot:
     x = uniform(key, (2,), -0.5, 0.5)
     a = params.arena_size
     zero = jnp.zeros((), jnp.float32)
-    return Robot(pos=jnp.stack([x[0], -a]), vel=jnp.zeros(2), goal=jnp.stack([x[1], a]),
-                 heading=zero + jnp.pi / 2, speed=zero)
+    return Robot(
+        pos=jnp.stack([x[0], -a]), vel=jnp.zeros(2), goal=jnp.stack([x[1], a]), heading=zero + jnp.pi / 2, speed=zero
+    )
 
 
 # circle_crossing (Francis et al.: circular crossing): spawn on a circle, walk to the antipode; goal changes
@@ -234,7 +236,8 @@ def _square_respawn(key, params, pos, goal, tries):
 # robot's way; even slots walk with the robot, odd slots against it. Arrived humans re-enter at their stream's start.
 def _stream_goal(key, params, direction, shape, half_width):
     return _box(key, shape, -half_width, half_width, 0.0, 0.0) + jnp.stack(
-        [jnp.zeros(shape), direction * params.circle_radius * jnp.ones(shape)], -1)
+        [jnp.zeros(shape), direction * params.circle_radius * jnp.ones(shape)], -1
+    )
 
 
 def _parallel_spawn(key, params, n, tries):
@@ -249,6 +252,7 @@ def _lane_new_goal(half_width_factor):
     def new_goal(key, params, humans, tries):
         direction = jnp.sign(humans.goal[:, 1:2])  # keep walking the stream's way
         return _stream_goal(key, params, direction, (humans.pos.shape[0], tries), half_width_factor * params.arena_size)
+
     return new_goal
 
 
@@ -257,8 +261,11 @@ def _lane_respawn(half_width_factor):
         k_pos, k_goal = jax.random.split(key)
         direction = jnp.sign(goal[1])
         c = half_width_factor * params.arena_size
-        return (_stream_goal(k_pos, params, -direction, (tries,), c),
-                _stream_goal(k_goal, params, direction, (tries,), c))
+        return (
+            _stream_goal(k_pos, params, -direction, (tries,), c),
+            _stream_goal(k_goal, params, direction, (tries,), c),
+        )
+
     return respawn
 
 
@@ -355,7 +362,7 @@ def _slots(*polygons):
     vertices = jnp.zeros((SCENARIO_OBSTACLE_SLOTS, SCENARIO_OBSTACLE_VERTICES, 2), jnp.float32)
     counts = jnp.zeros((SCENARIO_OBSTACLE_SLOTS,), jnp.int32)
     for m, polygon in enumerate(polygons):
-        vertices = vertices.at[m, :polygon.shape[0]].set(polygon)
+        vertices = vertices.at[m, : polygon.shape[0]].set(polygon)
         counts = counts.at[m].set(polygon.shape[0])
     return vertices, counts
 
@@ -399,8 +406,7 @@ def _corridor_new_goal(key, params, layout, humans, tries):
 def _corridor_respawn(key, params, layout, pos, goal, tries):
     k_pos, k_goal = jax.random.split(key)
     direction, c = jnp.sign(goal[1]), _corridor_lane(layout)
-    return (_stream_goal(k_pos, params, -direction, (tries,), c),
-            _stream_goal(k_goal, params, direction, (tries,), c))
+    return (_stream_goal(k_pos, params, -direction, (tries,), c), _stream_goal(k_goal, params, direction, (tries,), c))
 
 
 # doorway: a wall across the robot's way at y = y_d in [-1, 1] with one gap 1.2 to 2 m wide centred at x_d in
@@ -521,14 +527,19 @@ def _random_obstacles_layout(key, params, robot, tries):
         ok = ok & jnp.all((apart >= 0.0) | ~placed[None], axis=-1)
         pick = jnp.argmax(ok)
         use = jnp.any(ok) & (m < count)
-        carry = (placed_centre.at[m].set(centre[m, pick]), placed_reach.at[m].set(reach[m, pick]),
-                 placed.at[m].set(use))
-        box = _box_polygon(centre[m, pick, 0], centre[m, pick, 1], half[m, pick, 0], half[m, pick, 1],
-                           angle[m, pick])
+        carry = (
+            placed_centre.at[m].set(centre[m, pick]),
+            placed_reach.at[m].set(reach[m, pick]),
+            placed.at[m].set(use),
+        )
+        box = _box_polygon(centre[m, pick, 0], centre[m, pick, 1], half[m, pick, 0], half[m, pick, 1], angle[m, pick])
         return carry, (box, jnp.where(use, 4, 0).astype(jnp.int32))
 
-    init = (jnp.zeros((SCENARIO_OBSTACLE_SLOTS, 2)), jnp.zeros((SCENARIO_OBSTACLE_SLOTS,)),
-            jnp.zeros((SCENARIO_OBSTACLE_SLOTS,), bool))
+    init = (
+        jnp.zeros((SCENARIO_OBSTACLE_SLOTS, 2)),
+        jnp.zeros((SCENARIO_OBSTACLE_SLOTS,)),
+        jnp.zeros((SCENARIO_OBSTACLE_SLOTS,), bool),
+    )
     _, (boxes, counts) = jax.lax.scan(place, init, jnp.arange(SCENARIO_OBSTACLE_SLOTS))
     return boxes.astype(jnp.float32), counts
 
@@ -537,19 +548,19 @@ SCENARIO_TABLE = {
     "circle_crossing": _crowd(sample_robot, _circle_spawn, _circle_new_goal, _circle_respawn),
     "square_crossing": _crowd(sample_robot, _square_spawn, _square_new_goal, _square_respawn),
     "parallel_traffic": _crowd(_lane_robot, _parallel_spawn, _lane_new_goal(0.5), _lane_respawn(0.5)),
-    "perpendicular_traffic": _crowd(_lane_robot, _perpendicular_spawn, _perpendicular_new_goal,
-                                    _perpendicular_respawn),
+    "perpendicular_traffic": _crowd(_lane_robot, _perpendicular_spawn, _perpendicular_new_goal, _perpendicular_respawn),
     "frontal_approach": _crowd(_lane_robot, _frontal_spawn, _lane_new_goal(0.25), _lane_respawn(0.25)),
     "robot_overtaking": _crowd(_lane_robot, _overtaking_spawn, _lane_new_goal(0.25), _lane_respawn(0.25), 0.5),
     "robot_crowding": _crowd(_lane_robot, _crowding_spawn, _crowding_new_goal, _crowding_respawn),
     "random": _crowd(sample_robot, _random_spawn, _random_new_goal, _random_respawn),
-    "corridor": Scenario(_lane_robot, _corridor_spawn, _corridor_new_goal, _corridor_respawn,
-                         layout=_corridor_layout),
+    "corridor": Scenario(_lane_robot, _corridor_spawn, _corridor_new_goal, _corridor_respawn, layout=_corridor_layout),
     "doorway": Scenario(_lane_robot, _doorway_spawn, _doorway_new_goal, _doorway_respawn, layout=_doorway_layout),
-    "intersection": Scenario(_lane_robot, _intersection_spawn, _intersection_new_goal, _intersection_respawn,
-                             layout=_intersection_layout),
+    "intersection": Scenario(
+        _lane_robot, _intersection_spawn, _intersection_new_goal, _intersection_respawn, layout=_intersection_layout
+    ),
     "random_obstacles": _crowd(sample_robot, _circle_spawn, _circle_new_goal, _circle_respawn)._replace(
-        layout=_random_obstacles_layout),
+        layout=_random_obstacles_layout
+    ),
 }
 assert tuple(SCENARIO_TABLE) == SCENARIOS, "config.SCENARIOS lists the scenarios in this order"
 
@@ -639,8 +650,17 @@ def _with_obstacles(margin, candidates, own_radius, layout, gap):
     return margin if room is None else jnp.minimum(margin, room)
 
 
-def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: int, active=None,
-                 sampler: Sampler | None = None, index=0, layout: Obstacles | None = None) -> Humans:
+def spawn_humans(
+    key,
+    params: EnvParams,
+    robot: Robot,
+    num_humans: int,
+    tries: int,
+    active=None,
+    sampler: Sampler | None = None,
+    index=0,
+    layout: Obstacles | None = None,
+) -> Humans:
     """Place the active humans one at a time at the scenario's spawn candidates, each clear of the robot, of
     every human placed before (positions and goals) and of the obstacles; the inactive slots are parked.
     `active` (N,) bool defaults to all slots, `sampler` to circle crossing, `layout` to no obstacles."""
@@ -656,8 +676,9 @@ def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: i
     start, goal = sampler._call("spawn", index, k_cand, params, layout, static=(num_humans, tries))
     candidates = jnp.concatenate([start, goal], -1)  # (N, tries, 4): a start is chosen with its goal
     # room from the obstacles at both ends of each candidate's walk
-    room = obstacle_margin(jnp.stack([start, goal]), jnp.broadcast_to(radius, (2, num_humans)), layout,
-                           params.spawn_clearance)
+    room = obstacle_margin(
+        jnp.stack([start, goal]), jnp.broadcast_to(radius, (2, num_humans)), layout, params.spawn_clearance
+    )
     room = None if room is None else jnp.min(room, axis=0)
 
     # Slot 0 of the "others" arrays is the robot; slots 1..N fill up with placed humans.
@@ -674,17 +695,24 @@ def spawn_humans(key, params: EnvParams, robot: Robot, num_humans: int, tries: i
         if room is not None:
             margin = jnp.minimum(margin, room[i])
         pick = choose(candidates[i], margin)
-        carry = (others_pos.at[i + 1].set(pick[:2]), others_goal.at[i + 1].set(pick[2:]),
-                 placed.at[i + 1].set(active[i]))
+        carry = (
+            others_pos.at[i + 1].set(pick[:2]),
+            others_goal.at[i + 1].set(pick[2:]),
+            placed.at[i + 1].set(active[i]),
+        )
         return carry, None
 
-    (others_pos, others_goal, _), _ = jax.lax.scan(
-        place, (others_pos, others_goal, placed), jnp.arange(num_humans)
+    (others_pos, others_goal, _), _ = jax.lax.scan(place, (others_pos, others_goal, placed), jnp.arange(num_humans))
+    return park(
+        Humans(
+            pos=others_pos[1:],
+            vel=jnp.zeros((num_humans, 2)),
+            goal=others_goal[1:],
+            radius=radius,
+            v_pref=v_pref,
+            active=active,
+        )
     )
-    return park(Humans(
-        pos=others_pos[1:], vel=jnp.zeros((num_humans, 2)), goal=others_goal[1:], radius=radius, v_pref=v_pref,
-        active=active,
-    ))
 
 
 def _others_excluding_self(humans: Humans, robot: Robot, params: EnvParams):
@@ -707,8 +735,17 @@ def choose(candidates, margin):
     return jnp.sum(onehot[..., None] * candidates, axis=-2)
 
 
-def change_goals(key, humans: Humans, robot: Robot, params: EnvParams, step_count, tries: int,
-                 sampler: Sampler | None = None, index=0, layout: Obstacles | None = None) -> Humans:
+def change_goals(
+    key,
+    humans: Humans,
+    robot: Robot,
+    params: EnvParams,
+    step_count,
+    tries: int,
+    sampler: Sampler | None = None,
+    index=0,
+    layout: Obstacles | None = None,
+) -> Humans:
     """Every goal_change_interval seconds each active human switches, with goal_change_prob, to a new goal
     drawn by the scenario.
 
@@ -718,28 +755,46 @@ def change_goals(key, humans: Humans, robot: Robot, params: EnvParams, step_coun
     sampler = sampler or _CIRCLE_CROSSING
     layout = obstacles_lib.empty() if layout is None else layout
     due = (step_count % params.goal_change_period) == 0
-    return cond_gathered(due, lambda *args: _switch_goals(*args, tries, sampler), _unchanged,
-                         key, humans, robot, params, jnp.asarray(index, jnp.int32), layout)
+    return cond_gathered(
+        due,
+        lambda *args: _switch_goals(*args, tries, sampler),
+        _unchanged,
+        key,
+        humans,
+        robot,
+        params,
+        jnp.asarray(index, jnp.int32),
+        layout,
+    )
 
 
 def _unchanged(key, humans: Humans, robot: Robot, params: EnvParams, index, layout) -> Humans:
     return humans
 
 
-def _switch_goals(key, humans: Humans, robot: Robot, params: EnvParams, index, layout, tries: int,
-                  sampler) -> Humans:
+def _switch_goals(key, humans: Humans, robot: Robot, params: EnvParams, index, layout, tries: int, sampler) -> Humans:
     """Each human switches, with goal_change_prob, to a new goal clear of the others and of the obstacles."""
     n = humans.pos.shape[0]
     k_coin, k_cand = jax.random.split(key)
     switch = (uniform(k_coin, (n,)) < params.goal_change_prob) & humans.active
     candidates = sampler._call("new_goal", index, k_cand, params, layout, humans, static=(tries,))
-    margin = clearance(candidates, humans.radius, *_others_excluding_self(humans, robot, params), params.spawn_clearance)
+    margin = clearance(
+        candidates, humans.radius, *_others_excluding_self(humans, robot, params), params.spawn_clearance
+    )
     margin = _with_obstacles(margin, candidates, humans.radius, layout, params.spawn_clearance)
     return humans.replace(goal=jnp.where(switch[:, None], choose(candidates, margin), humans.goal))
 
 
-def respawn_arrived(key, humans: Humans, robot: Robot, params: EnvParams, tries: int,
-                    sampler: Sampler | None = None, index=0, layout: Obstacles | None = None) -> Humans:
+def respawn_arrived(
+    key,
+    humans: Humans,
+    robot: Robot,
+    params: EnvParams,
+    tries: int,
+    sampler: Sampler | None = None,
+    index=0,
+    layout: Obstacles | None = None,
+) -> Humans:
     """A human within its own radius of its goal is replaced by a fresh one of the scenario (`random` keeps it
     where it is with a new goal).
 
@@ -750,8 +805,17 @@ def respawn_arrived(key, humans: Humans, robot: Robot, params: EnvParams, tries:
     """
     sampler = sampler or _CIRCLE_CROSSING
     layout = obstacles_lib.empty() if layout is None else layout
-    return cond_gathered(jnp.any(_arrived(humans)), lambda *args: _respawn_first(*args, tries, sampler),
-                         _unchanged, key, humans, robot, params, jnp.asarray(index, jnp.int32), layout)
+    return cond_gathered(
+        jnp.any(_arrived(humans)),
+        lambda *args: _respawn_first(*args, tries, sampler),
+        _unchanged,
+        key,
+        humans,
+        robot,
+        params,
+        jnp.asarray(index, jnp.int32),
+        layout,
+    )
 
 
 def _arrived(humans: Humans):
@@ -759,8 +823,7 @@ def _arrived(humans: Humans):
     return (jnp.square(offset[:, 0]) + jnp.square(offset[:, 1]) < jnp.square(humans.radius)) & humans.active
 
 
-def _respawn_first(key, humans: Humans, robot: Robot, params: EnvParams, index, layout, tries: int,
-                   sampler) -> Humans:
+def _respawn_first(key, humans: Humans, robot: Robot, params: EnvParams, index, layout, tries: int, sampler) -> Humans:
     """Replace the lowest-indexed arrived human (if any) by a fresh one."""
     n = humans.pos.shape[0]
     k_attr, k_cand = jax.random.split(key)
@@ -768,8 +831,9 @@ def _respawn_first(key, humans: Humans, robot: Robot, params: EnvParams, index, 
     who = jnp.argmax(arrived)
     radius, v_pref = sample_attributes(k_attr, params)
     v_pref = sampler.scale_speed(v_pref, index)
-    start, goal = sampler._call("respawn", index, k_cand, params, layout, humans.pos[who], humans.goal[who],
-                                static=(tries,))
+    start, goal = sampler._call(
+        "respawn", index, k_cand, params, layout, humans.pos[who], humans.goal[who], static=(tries,)
+    )
     pos, goals, radii, valid = _others_excluding_self(humans, robot, params)
     margin = clearance(start, radius, pos, goals, radii, valid[who], params.spawn_clearance)
     margin = _with_obstacles(margin, start, radius, layout, params.spawn_clearance)
@@ -778,6 +842,10 @@ def _respawn_first(key, humans: Humans, robot: Robot, params: EnvParams, index, 
     replace = arrived & (jnp.arange(n) == who)
     put = lambda new, old: jnp.where(replace.reshape((n,) + (1,) * (old.ndim - 1)), new, old)
     return Humans(
-        pos=put(pick[:2], humans.pos), vel=put(jnp.zeros(2), humans.vel), goal=put(pick[2:], humans.goal),
-        radius=put(radius, humans.radius), v_pref=put(v_pref, humans.v_pref), active=humans.active,
+        pos=put(pick[:2], humans.pos),
+        vel=put(jnp.zeros(2), humans.vel),
+        goal=put(pick[2:], humans.goal),
+        radius=put(radius, humans.radius),
+        v_pref=put(v_pref, humans.v_pref),
+        active=humans.active,
     )

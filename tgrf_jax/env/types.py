@@ -28,10 +28,10 @@ class _EnvParamsMethods:
         return jnp.maximum(jnp.round(self.goal_change_interval / self.dt), 1.0).astype(jnp.int32)
 
     @classmethod
-    def from_config(cls, config: EnvConfig, reward: RewardParams) -> "EnvParams":
+    def from_config(cls, config: EnvConfig, reward: RewardParams) -> EnvParams:
         return cls(**traced_values(config), reward=reward)
 
-    def validate(self) -> "EnvParams":
+    def validate(self) -> EnvParams:
         """Check the concrete values (on the host; batched params element by element) against the ranges and
         relations declared in `EnvConfig` and `RewardConfig`, as a config is checked. Raises ConfigError (a
         ValueError) naming the field and what is allowed; returns the params."""
@@ -40,7 +40,10 @@ class _EnvParamsMethods:
 
 
 EnvParams = traced_pytree(
-    "EnvParams", EnvConfig, last=(("reward", RewardParams), ("predictor", Any, None)), base=_EnvParamsMethods,
+    "EnvParams",
+    EnvConfig,
+    last=(("reward", RewardParams), ("predictor", Any, None)),
+    base=_EnvParamsMethods,
     module=__name__,
     doc="""Every numeric setting of the environment (traced: vmap over any field for grids or randomisation).
 

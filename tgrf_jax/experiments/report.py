@@ -22,9 +22,31 @@ from tgrf_jax.storage.files import write_atomic
 
 REPORT_MD = "report.md"
 REPORT_CSV = "report.csv"
-CSV_FIELDS = ("experiment", "row", "label", "axis", "value", "damaged", "seeds", "sr_mean", "sr_std", "best_seed", "sr",
-              "nt", "pl", "itr", "itr_disc", "paper_sr_mean", "paper_sr_std", "paper_sr", "paper_nt", "paper_pl",
-              "paper_itr", "row_wall_s", "commit")
+CSV_FIELDS = (
+    "experiment",
+    "row",
+    "label",
+    "axis",
+    "value",
+    "damaged",
+    "seeds",
+    "sr_mean",
+    "sr_std",
+    "best_seed",
+    "sr",
+    "nt",
+    "pl",
+    "itr",
+    "itr_disc",
+    "paper_sr_mean",
+    "paper_sr_std",
+    "paper_sr",
+    "paper_nt",
+    "paper_pl",
+    "paper_itr",
+    "row_wall_s",
+    "commit",
+)
 _FIGURES = ("heatmap.png", "grid_metrics.png", "learning_curves.png", "eval_curves.png")
 
 
@@ -121,13 +143,18 @@ def read_provenance(row_dir: pathlib.Path) -> dict | None:
         return None
     try:
         prov = json.loads(path.read_text(encoding="utf-8"))
-        if not isinstance(prov, dict) or not isinstance(prov.get("invocations"), list) or not all(
-                isinstance(i, dict) for i in prov["invocations"]):
+        if (
+            not isinstance(prov, dict)
+            or not isinstance(prov.get("invocations"), list)
+            or not all(isinstance(i, dict) for i in prov["invocations"])
+        ):
             raise ValueError("no list of invocations")
         float(prov.get("wall_s", 0.0))
     except (OSError, UnicodeDecodeError, ValueError, TypeError) as e:
-        raise ConfigError(f"{str(path)!r} is damaged ({type(e).__name__}: {str(e)[:80]}); restore it, or move it "
-                          "aside to record the row's invocations afresh") from None
+        raise ConfigError(
+            f"{str(path)!r} is damaged ({type(e).__name__}: {str(e)[:80]}); restore it, or move it "
+            "aside to record the row's invocations afresh"
+        ) from None
     return prov
 
 
@@ -142,9 +169,14 @@ def _provenance(row_dir: pathlib.Path) -> dict:
         return list(dict.fromkeys(i[key] for i in invocations if i.get(key)))
 
     commits = distinct("commit")
-    return {"row_wall_s": prov.get("wall_s"), "commit": last.get("commit"), "finished": last.get("finished"),
-            "invocations": len(invocations), "machines": "; ".join(distinct("machine")),
-            "commits": commits[0] if len(commits) < 2 else f"{commits[0]} to {commits[-1]}"}
+    return {
+        "row_wall_s": prov.get("wall_s"),
+        "commit": last.get("commit"),
+        "finished": last.get("finished"),
+        "invocations": len(invocations),
+        "machines": "; ".join(distinct("machine")),
+        "commits": commits[0] if len(commits) < 2 else f"{commits[0]} to {commits[-1]}",
+    }
 
 
 def collect(exp: Experiment, out: pathlib.Path) -> list[dict]:
@@ -162,8 +194,15 @@ def collect(exp: Experiment, out: pathlib.Path) -> list[dict]:
             if problem:
                 ours = {"damaged": f"damaged ({problem}): rerun tgrf-reproduce {exp.name} --rows {row.name}"}
             paper = row.paper.get(str(value), {})
-            rec = {"experiment": exp.name, "row": row.name, "label": row.label, "axis": axis, "value": str(value),
-                   **ours, **{f"paper_{k}": v for k, v in paper.items()}}
+            rec = {
+                "experiment": exp.name,
+                "row": row.name,
+                "label": row.label,
+                "axis": axis,
+                "value": str(value),
+                **ours,
+                **{f"paper_{k}": v for k, v in paper.items()},
+            }
             rec.update({k: prov.get(k) for k in ("row_wall_s", "commit")})
             rec.update({f"_{k}": prov.get(k) for k in ("invocations", "commits", "machines", "finished")})
             records.append(rec)
@@ -180,27 +219,43 @@ def _pair(ours: str, paper: str | None) -> str:
 
 def format_table(exp: Experiment, records: list[dict]) -> str:
     """The paper's layout: one block per compared value, one line per row; cells 'ours (paper)'."""
-    lines = ["| reward | navigation method | SR mean ± std (%) | SR (%) | NT (s) | PL (m) | ITR (%) | ITR disc (%) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| reward | navigation method | SR mean ± std (%) | SR (%) | NT (s) | PL (m) | ITR (%) | ITR disc (%) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for value in exp.column_values:
         first = True
         for rec in (r for r in records if r["value"] == str(value)):
             has_paper = "paper_sr" in rec
-            pp = (lambda k, fmt="{:.2f}": _num(rec.get(f"paper_{k}"), fmt) if has_paper else None)
-            sr_mean = rec["damaged"] if "damaged" in rec else "…" if "sr_mean" not in rec else (
-                f"{rec['sr_mean']:.1f}" + (f" ± {rec['sr_std']:.1f}" if not math.isnan(rec["sr_std"]) else ""))
-            paper_mean = (f"{rec['paper_sr_mean']:.1f} ± {rec['paper_sr_std']:.1f}"
-                          if has_paper and "paper_sr_mean" in rec else ("–" if has_paper else None))
-            lines.append("| " + " | ".join([
-                exp.column_label(value) if first else "",
-                rec["label"],
-                _pair(sr_mean, paper_mean),
-                _pair(_num(rec.get("sr"), "{:.1f}"), pp("sr", "{:.1f}")),
-                _pair(_num(rec.get("nt")), pp("nt")),
-                _pair(_num(rec.get("pl")), pp("pl")),
-                _pair(_num(rec.get("itr")), pp("itr")),
-                _num(rec.get("itr_disc")),
-            ]) + " |")
+            pp = lambda k, fmt="{:.2f}": _num(rec.get(f"paper_{k}"), fmt) if has_paper else None
+            sr_mean = (
+                rec["damaged"]
+                if "damaged" in rec
+                else "…"
+                if "sr_mean" not in rec
+                else (f"{rec['sr_mean']:.1f}" + (f" ± {rec['sr_std']:.1f}" if not math.isnan(rec["sr_std"]) else ""))
+            )
+            paper_mean = (
+                f"{rec['paper_sr_mean']:.1f} ± {rec['paper_sr_std']:.1f}"
+                if has_paper and "paper_sr_mean" in rec
+                else ("–" if has_paper else None)
+            )
+            lines.append(
+                "| "
+                + " | ".join(
+                    [
+                        exp.column_label(value) if first else "",
+                        rec["label"],
+                        _pair(sr_mean, paper_mean),
+                        _pair(_num(rec.get("sr"), "{:.1f}"), pp("sr", "{:.1f}")),
+                        _pair(_num(rec.get("nt")), pp("nt")),
+                        _pair(_num(rec.get("pl")), pp("pl")),
+                        _pair(_num(rec.get("itr")), pp("itr")),
+                        _num(rec.get("itr_disc")),
+                    ]
+                )
+                + " |"
+            )
             first = False
     return "\n".join(lines)
 
@@ -212,8 +267,10 @@ def _grid_points(exp: Experiment, row: Row, out: pathlib.Path) -> str:
     if problem:
         return f"damaged ({problem}): rerun tgrf-reproduce {exp.name} --rows {row.name}"
     names = exp.grid_names
-    lines = ["| " + " | ".join(names) + " | seeds | SR (%) | ITR (%) | ITR disc (%) | NT (s) | PL (m) |",
-             "|" + "---|" * (len(names) + 6)]
+    lines = [
+        "| " + " | ".join(names) + " | seeds | SR (%) | ITR (%) | ITR disc (%) | NT (s) | PL (m) |",
+        "|" + "---|" * (len(names) + 6),
+    ]
     groups: dict[tuple, list[dict]] = {}
     for r in runs:
         groups.setdefault(tuple(r[n] for n in names), []).append(r)
@@ -226,20 +283,31 @@ def _grid_points(exp: Experiment, row: Row, out: pathlib.Path) -> str:
         return f"{x.mean():.1f}" + (f" ± {x.std(ddof=1):.1f}" if x.size > 1 else "")
 
     for key, rs in groups.items():
-        lines.append("| " + " | ".join(key) + f" | {len(rs)} | {ms(rs, 'success_rate', 100.0)} | "
-                     f"{ms(rs, 'itr_future')} | {ms(rs, 'itr_disc')} | {ms(rs, 'nav_time')} | {ms(rs, 'path_length')} |")
+        lines.append(
+            "| " + " | ".join(key) + f" | {len(rs)} | {ms(rs, 'success_rate', 100.0)} | "
+            f"{ms(rs, 'itr_future')} | {ms(rs, 'itr_disc')} | {ms(rs, 'nav_time')} | {ms(rs, 'path_length')} |"
+        )
     return "\n".join(lines) if groups else "(no finished runs yet)"
 
 
 def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> str:
     done = sorted({r["row"] for r in records if "sr_mean" in r})
-    parts = [f"# {exp.title}", "",
-             f"Rows finished: {len(done)}/{len(exp.rows)}; {exp.seeds} seeds per cell; compared inside each row: "
-             + " x ".join(f"`{name}` = {', '.join(map(str, exp.axis_values(name)))}" for name in exp.grid_names) + "."]
+    parts = [
+        f"# {exp.title}",
+        "",
+        f"Rows finished: {len(done)}/{len(exp.rows)}; {exp.seeds} seeds per cell; compared inside each row: "
+        + " x ".join(f"`{name}` = {', '.join(map(str, exp.axis_values(name)))}" for name in exp.grid_names)
+        + ".",
+    ]
     if exp.layout == "table":
-        parts += ["", "Each cell: ours (the paper's). SR mean ± sample std over seeds; SR, NT, PL and ITR of the best seed. "
-                  "ITR is the reference's itr_future; ITR disc is the share of steps with the nearest human closer "
-                  "than d_disc (ours only).", "", format_table(exp, records)]
+        parts += [
+            "",
+            "Each cell: ours (the paper's). SR mean ± sample std over seeds; SR, NT, PL and ITR of the best seed. "
+            "ITR is the reference's itr_future; ITR disc is the share of steps with the nearest human closer "
+            "than d_disc (ours only).",
+            "",
+            format_table(exp, records),
+        ]
     else:
         for row in exp.rows:
             parts += ["", f"## {row.label}", "", _grid_points(exp, row, out)]
@@ -255,8 +323,10 @@ def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> st
                 continue
             seen.add(r["row"])
             wall = r["row_wall_s"] or 0.0
-            parts.append(f"| {r['row']} | {wall / 60:.1f} min | {r['_invocations']} | {r['_commits']} | {r['_machines']} "
-                         f"| {r['_finished']} |")
+            parts.append(
+                f"| {r['row']} | {wall / 60:.1f} min | {r['_invocations']} | {r['_commits']} | {r['_machines']} "
+                f"| {r['_finished']} |"
+            )
     if exp.notes:
         parts += ["", exp.notes.strip()]
     return "\n".join(parts) + "\n"

@@ -20,7 +20,7 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import yaml
 
@@ -45,10 +45,20 @@ def source_commit(root: pathlib.Path | None = None) -> str:
     uncommitted changes (new files included), or 'unknown' outside a git checkout."""
     root = pathlib.Path(__file__).resolve().parents[2] if root is None else root
     try:
-        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"], capture_output=True,
-                              text=True, timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=all", "--",
-                                *CODE_PATHS], capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=all", "--", *CODE_PATHS],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return head + ("+dirty" if dirty else "")
@@ -123,13 +133,17 @@ def _recorded(row_dir: pathlib.Path) -> bool:
 def _load_recorded(recorded: pathlib.Path) -> dict:
     try:
         old = yaml.safe_load(recorded.read_text(encoding="utf-8"))
-        if not isinstance(old, dict) or not isinstance(old.get("rows", []), list) or not all(
-                isinstance(r, dict) and "name" in r for r in old.get("rows", [])):
+        if (
+            not isinstance(old, dict)
+            or not isinstance(old.get("rows", []), list)
+            or not all(isinstance(r, dict) and "name" in r for r in old.get("rows", []))
+        ):
             raise ValueError("not a mapping with a list of rows")
     except (OSError, UnicodeDecodeError, ValueError, yaml.YAMLError) as e:
-        raise ConfigError(f"{str(recorded)!r} is damaged ({type(e).__name__}: {str(e).splitlines()[0][:80]}): the "
-                          "settings of the rows in its directory are unknown; restore it, or use another --out") \
-            from None
+        raise ConfigError(
+            f"{str(recorded)!r} is damaged ({type(e).__name__}: {str(e).splitlines()[0][:80]}): the "
+            "settings of the rows in its directory are unknown; restore it, or use another --out"
+        ) from None
     return old
 
 
@@ -147,12 +161,15 @@ def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
         if clash:
             raise ConfigError(
                 f"{str(out)!r} holds results of this experiment with other settings ({', '.join(clash)} differ); "
-                "use another --out, or the same --steps/--seeds as before")
+                "use another --out, or the same --steps/--seeds as before"
+            )
     elif out.is_dir():
         started = sorted(p.name for p in out.iterdir() if (p / "sweep.yaml").is_file())
         if started:  # their budget and seeds are recorded nowhere else: results could mix settings
-            raise ConfigError(f"{str(out)!r} holds rows ({', '.join(started[:5])}) but no {EXPERIMENT_FILE}, so "
-                              "their settings are unknown; restore it, or use another --out")
+            raise ConfigError(
+                f"{str(out)!r} holds rows ({', '.join(started[:5])}) but no {EXPERIMENT_FILE}, so "
+                "their settings are unknown; restore it, or use another --out"
+            )
 
 
 def _record(exp: Experiment, out: pathlib.Path) -> None:
@@ -192,8 +209,9 @@ def _stop_with_parent() -> None:
         pass
 
 
-def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None],
-            layout: str | None = None) -> int:
+def run_row(
+    exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None], layout: str | None = None
+) -> int:
     """Train (or resume) one row as a tgrf-sweep child process; returns its exit code. `layout`: a new row's
     sweep layout (default auto), or the layout a started row switches to (default: the one it has)."""
     state = row_state(row_dir)
@@ -216,9 +234,13 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
         cmd += sweep_args(exp, row, layout or "auto") + ["--out", str(row_dir)]
     prov = report.read_provenance(row_dir) or {"wall_s": 0.0, "invocations": []}
     started, commit = time.perf_counter(), source_commit()  # the code the sweep imports now, not at its end
-    invocation = {"commit": commit, "machine": machine(), "exit_code": None,
-                  "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-                  "command": " ".join(["tgrf-sweep"] + [portable(a) if a == exp.config else a for a in cmd[3:]])}
+    invocation = {
+        "commit": commit,
+        "machine": machine(),
+        "exit_code": None,
+        "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "command": " ".join(["tgrf-sweep"] + [portable(a) if a == exp.config else a for a in cmd[3:]]),
+    }
     wall_before = float(prov.get("wall_s", 0.0))
     prov["invocations"].append(invocation)
     row_dir.mkdir(parents=True, exist_ok=True)
@@ -226,8 +248,14 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
     # invocation without an exit code, and the row is not counted as done until a rerun completes it
     write_atomic(prov_path, json.dumps(prov, indent=2))
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
-                            preexec_fn=_stop_with_parent if sys.platform.startswith("linux") else None)
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        preexec_fn=_stop_with_parent if sys.platform.startswith("linux") else None,
+    )
 
     def relay_output():
         for line in proc.stdout:
@@ -245,8 +273,9 @@ def run_row(exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str
         code = proc.wait()
         if row_dir.is_dir():
             prov["wall_s"] = wall_before + time.perf_counter() - started
-            invocation.update(exit_code=code,
-                              finished=datetime.datetime.now().astimezone().isoformat(timespec="seconds"))
+            invocation.update(
+                exit_code=code, finished=datetime.datetime.now().astimezone().isoformat(timespec="seconds")
+            )
             write_atomic(prov_path, json.dumps(prov, indent=2))
     return code
 
@@ -264,11 +293,27 @@ def export_best(exp: Experiment, out: pathlib.Path, row: Row, dest_root) -> list
             continue
         best = report.cell(members)["best_seed"]
         run = next(r for r in members if int(r["seed"]) == best)
-        meta = {"experiment": exp.name, "row": row.name, "label": row.label, axis: str(value), "seed": best,
-                "test": {k: report._float(run[k]) for k in ("success_rate", "collision_rate", "timeout_rate",
-                                                           "nav_time", "path_length", "itr_future", "itr_disc")
-                         if k in run},
-                "commit": _provenance_commit(out / row.name)}
+        meta = {
+            "experiment": exp.name,
+            "row": row.name,
+            "label": row.label,
+            axis: str(value),
+            "seed": best,
+            "test": {
+                k: report._float(run[k])
+                for k in (
+                    "success_rate",
+                    "collision_rate",
+                    "timeout_rate",
+                    "nav_time",
+                    "path_length",
+                    "itr_future",
+                    "itr_disc",
+                )
+                if k in run
+            },
+            "commit": _provenance_commit(out / row.name),
+        }
         dest = pathlib.Path(dest_root) / f"{exp.name}-{row.name}-{value}"
         written.append(pretrained.export(out / row.name / "runs" / run["run"], dest, meta))
     return written
@@ -284,12 +329,23 @@ def _provenance_commit(row_dir: pathlib.Path) -> str | None:
 
 def export_finished(exp: Experiment, out: pathlib.Path, dest_root) -> list[pathlib.Path]:
     """`export_best` for every finished row of `exp`; returns the exported directories."""
-    return [path for row in exp.rows if row_state(out / row.name) == "done"
-            for path in export_best(exp, out, row, dest_root)]
+    return [
+        path
+        for row in exp.rows
+        if row_state(out / row.name) == "done"
+        for path in export_best(exp, out, row, dest_root)
+    ]
 
 
-def reproduce(exp: Experiment, out, *, log: Callable[[str], None] = print, export_to=None,
-              report_exp: Experiment | None = None, layout: str | None = None) -> int:
+def reproduce(
+    exp: Experiment,
+    out,
+    *,
+    log: Callable[[str], None] = print,
+    export_to=None,
+    report_exp: Experiment | None = None,
+    layout: str | None = None,
+) -> int:
     """Run every unfinished row of `exp` into `out`, rewriting the report after each row; returns an exit code.
     With `export_to`, each finished row's best policies are exported there (`export_best`). The report covers
     `report_exp` (default `exp`): the whole experiment when `exp` is a selection of its rows, so rows finished
@@ -333,8 +389,10 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
         states = {r.name: row_state(out / r.name) for r in exp.rows}
         todo = [r for r in exp.rows if states[r.name] != "done"]
         axes = " x ".join(f"{len(exp.axis_values(name))} {name}" for name in exp.grid_names)
-        say(f"[{exp.name}] {exp.title}: {len(exp.rows)} rows x {axes} values x {exp.seeds} seeds; "
-            f"{len(exp.rows) - len(todo)} rows already done; results in {out}")
+        say(
+            f"[{exp.name}] {exp.title}: {len(exp.rows)} rows x {axes} values x {exp.seeds} seeds; "
+            f"{len(exp.rows) - len(todo)} rows already done; results in {out}"
+        )
         report.write(report_exp, out)
         t0 = time.perf_counter()
         for i, row in enumerate(todo):
@@ -343,8 +401,10 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
             if i:
                 per_row = (time.perf_counter() - t0) / i
                 eta = f"; about {_fmt_duration(per_row * (len(todo) - i))} left"
-            say(f"[{exp.name}] row {done + 1}/{len(exp.rows)}: {row.label} ({row.name}), "
-                f"{states[row.name]}; {_fmt_duration(time.perf_counter() - t0)} elapsed{eta}")
+            say(
+                f"[{exp.name}] row {done + 1}/{len(exp.rows)}: {row.label} ({row.name}), "
+                f"{states[row.name]}; {_fmt_duration(time.perf_counter() - t0)} elapsed{eta}"
+            )
             try:
                 code = run_row(exp, row, out / row.name, say, layout)
             except KeyboardInterrupt:

@@ -25,7 +25,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import pathlib
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import yaml
 
@@ -99,16 +100,18 @@ class Experiment:
                 return r
         raise ConfigError(f"experiment {self.name!r} has no row {name!r}; rows: {', '.join(r.name for r in self.rows)}")
 
-    def shrunk(self, *, steps: int | None = None, seeds: int | None = None,
-               rows: list[str] | None = None) -> "Experiment":
+    def shrunk(
+        self, *, steps: int | None = None, seeds: int | None = None, rows: list[str] | None = None
+    ) -> Experiment:
         """The same experiment with a smaller budget, fewer seeds or a subset of rows (for a quick look)."""
         out = self
         if steps is not None:
             if steps < 1:
                 raise ConfigError(f"--steps = {steps} must be >= 1")
             extra = (f"ppo.total_steps={steps}",)
-            out = dataclasses.replace(out, rows=tuple(
-                dataclasses.replace(r, overrides=r.overrides + extra) for r in out.rows))
+            out = dataclasses.replace(
+                out, rows=tuple(dataclasses.replace(r, overrides=r.overrides + extra) for r in out.rows)
+            )
         if seeds is not None:
             if not 1 <= seeds <= 100:
                 raise ConfigError(f"--seeds = {seeds} is out of range; allowed: 1 to 100")
@@ -119,11 +122,14 @@ class Experiment:
 
     def to_dict(self) -> dict:
         return {
-            "name": self.name, "title": self.title, "layout": self.layout,
+            "name": self.name,
+            "title": self.title,
+            "layout": self.layout,
             "config": portable(self.config) if self.config else None,
             "seeds": self.seeds,
-            "rows": [{"name": r.name, "set": list(r.overrides), "grid": {k: list(v) for k, v in r.grid}}
-                     for r in self.rows],
+            "rows": [
+                {"name": r.name, "set": list(r.overrides), "grid": {k: list(v) for k, v in r.grid}} for r in self.rows
+            ],
         }
 
 
@@ -173,12 +179,16 @@ def _paper(raw: Any, where: str, column_values) -> dict:
     out = {}
     for value, numbers in raw.items():
         if str(value) not in {str(v) for v in column_values}:
-            raise ConfigError(f"{where}: {value!r} is not a value of the compared axis ({', '.join(map(str, column_values))})")
+            raise ConfigError(
+                f"{where}: {value!r} is not a value of the compared axis ({', '.join(map(str, column_values))})"
+            )
         if not isinstance(numbers, Mapping):
             raise ConfigError(f"{where}.{value} must map {', '.join(PAPER_FIELDS)} to numbers")
         unknown = set(numbers) - set(PAPER_FIELDS)
         if unknown:
-            raise ConfigError(f"{where}.{value}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(PAPER_FIELDS)}")
+            raise ConfigError(
+                f"{where}.{value}: unknown field(s) {sorted(unknown)}; allowed: {', '.join(PAPER_FIELDS)}"
+            )
         for k, v in numbers.items():
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ConfigError(f"{where}.{value}.{k} = {_short(v)} must be a finite number")
@@ -195,10 +205,15 @@ def _grid(raw: Any, where: str) -> tuple[tuple[str, tuple], ...]:
             raise ConfigError(f"{where}.{key} must be a non-empty list of values")
         for v in values:
             # a row runs as `tgrf-sweep --grid key=v1,v2`: a comma inside a value would split it in two
-            if isinstance(v, bool) or not isinstance(v, (int, float, str)) or (isinstance(v, str) and (
-                    not v.strip() or "," in v)):
-                raise ConfigError(f"{where}.{key}: value {_short(v)} is not allowed; allowed: numbers and names "
-                                  "without commas, one list item each")
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float, str))
+                or (isinstance(v, str) and (not v.strip() or "," in v))
+            ):
+                raise ConfigError(
+                    f"{where}.{key}: value {_short(v)} is not allowed; allowed: numbers and names "
+                    "without commas, one list item each"
+                )
         axes.append((str(key), tuple(values)))
     return tuple(axes)
 
@@ -240,15 +255,30 @@ def load(name_or_path: str) -> Experiment:
         seen.add(name)
         grid = _grid(raw["grid"], f"{where}.grid") if "grid" in raw else axes
         if [k for k, _ in grid] != [k for k, _ in axes]:
-            raise ConfigError(f"{where}.grid must have the experiment's axes ({', '.join(k for k, _ in axes)}); "
-                              "only their values may differ")
-        rows.append(Row(name=name, label=str(raw.get("label", name)),
-                        overrides=common + _overrides(raw.get("set"), f"{where}.set"), grid=grid,
-                        paper=_paper(raw.get("paper"), f"{where}.paper", grid[0][1])))
+            raise ConfigError(
+                f"{where}.grid must have the experiment's axes ({', '.join(k for k, _ in axes)}); "
+                "only their values may differ"
+            )
+        rows.append(
+            Row(
+                name=name,
+                label=str(raw.get("label", name)),
+                overrides=common + _overrides(raw.get("set"), f"{where}.set"),
+                grid=grid,
+                paper=_paper(raw.get("paper"), f"{where}.paper", grid[0][1]),
+            )
+        )
     columns = {str(k): str(v) for k, v in (data.get("columns") or {}).items()}
-    exp = Experiment(name=path.stem, title=str(data.get("title", path.stem)), layout=layout, config=config,
-                     seeds=seeds, columns=columns, rows=tuple(rows),
-                     notes=str(data.get("notes", "")))
+    exp = Experiment(
+        name=path.stem,
+        title=str(data.get("title", path.stem)),
+        layout=layout,
+        config=config,
+        seeds=seeds,
+        columns=columns,
+        rows=tuple(rows),
+        notes=str(data.get("notes", "")),
+    )
     for row in exp.rows:
         sweep_spec(exp, row)  # a typo in any row fails here, before anything runs
     return exp

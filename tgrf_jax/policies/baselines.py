@@ -88,11 +88,22 @@ class OrcaPolicy:
         extra = {}
         if obs.obstacles.num_vertices.shape[-1] > 0:
             # the obstacles in the same robot-centred frame as the agents
-            extra = dict(obstacles=(obs.obstacles.vertices - robot_pos, obs.obstacles.num_vertices),
-                         time_horizon_obst=self.time_horizon_obst)
+            extra = dict(
+                obstacles=(obs.obstacles.vertices - robot_pos, obs.obstacles.num_vertices),
+                time_horizon_obst=self.time_horizon_obst,
+            )
         new_vel = orca.solve(
-            pos, vel, radii, prefs, max_speeds, time_horizon=self.time_horizon, dt=self.dt,
-            neighbor_dist=self.neighbor_dist, max_neighbors=n, neighbor_mask=seen, **extra,
+            pos,
+            vel,
+            radii,
+            prefs,
+            max_speeds,
+            time_horizon=self.time_horizon,
+            dt=self.dt,
+            neighbor_dist=self.neighbor_dist,
+            max_neighbors=n,
+            neighbor_mask=seen,
+            **extra,
         )
         return new_vel[0]
 

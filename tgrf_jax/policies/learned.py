@@ -45,6 +45,14 @@ def make_network_for(config: TrainConfig) -> ActorCritic:
     env_cfg, n = config.env, config.network
     # The scan is scaled by the sensor range (its largest value); a range of 0 gives all-zero scans, any scale will do.
     lidar_range = env_cfg.sensor_range if env_cfg.sensor_range > 0 else 1.0
-    return make_network(n.name, n.size, env_cfg.obs_human_dim, env_cfg.num_humans, frame=n.frame,
-                        rotate_action=env_cfg.kinematics == "holonomic", init_log_std=n.init_log_std,
-                        lidar_rays=env_cfg.lidar_rays, lidar_range=lidar_range)
+    return make_network(
+        n.name,
+        n.size,
+        env_cfg.obs_human_dim,
+        env_cfg.num_humans,
+        frame=n.frame,
+        rotate_action=env_cfg.kinematics == "holonomic",
+        init_log_std=n.init_log_std,
+        lidar_rays=env_cfg.lidar_rays,
+        lidar_range=lidar_range,
+    )

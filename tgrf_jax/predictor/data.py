@@ -56,16 +56,21 @@ class CollectConfig:
     def __post_init__(self):
         if self.crowd not in CROWDS:
             raise ValueError(f"crowd = {self.crowd!r} is not allowed; allowed: {', '.join(map(repr, CROWDS))}")
-        for name, low, high in (("num_envs", 5, 100_000), ("steps", WINDOW, 1_000_000), ("num_humans", 1, 200),
-                                ("chunk", 1, 1_000_000)):
+        for name, low, high in (
+            ("num_envs", 5, 100_000),
+            ("steps", WINDOW, 1_000_000),
+            ("num_humans", 1, 200),
+            ("chunk", 1, 1_000_000),
+        ):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} = {value!r} must be an integer >= {low}")
             if value > high:
                 raise ValueError(f"{name} = {value:,} is out of range; allowed: {low} .. {high:,}")
         if self.num_envs * self.steps > MAX_FRAMES:  # the arrays are held in memory whole
-            raise ValueError(f"num_envs x steps = {self.num_envs * self.steps:,} frames is out of range; allowed: "
-                             f"<= {MAX_FRAMES:,}")
+            raise ValueError(
+                f"num_envs x steps = {self.num_envs * self.steps:,} frames is out of range; allowed: <= {MAX_FRAMES:,}"
+            )
         if not isinstance(self.seed, int) or not 0 <= self.seed < 2**31:
             raise ValueError(f"seed = {self.seed!r} must be an integer in [0, 2^31)")
 
@@ -132,19 +137,25 @@ def collect(config: CollectConfig, log=print) -> dict:
         keys = jax.random.split(key, (length, b))
         return jax.lax.scan(lambda r, k: jax.vmap(step)(r, k), rec, keys)
 
-    out = dict(robot_pos=np.zeros((b, t, 2), np.float32), human_pos=np.zeros((b, t, n, 2), np.float32),
-               visible=np.zeros((b, t, n), bool), seg=np.zeros((b, t, n), np.int32))
+    out = dict(
+        robot_pos=np.zeros((b, t, 2), np.float32),
+        human_pos=np.zeros((b, t, n, 2), np.float32),
+        visible=np.zeros((b, t, n), bool),
+        seg=np.zeros((b, t, n), np.int32),
+    )
     start = time.perf_counter()
     done = 0
     for c, key in enumerate(jax.random.split(k_run, -(-t // config.chunk))):
         length = min(config.chunk, t - done)
         rec, frames = run_chunk(rec, key, length)
         for name, arr in frames.items():
-            out[name][:, done:done + length] = np.swapaxes(np.asarray(arr), 0, 1)
+            out[name][:, done : done + length] = np.swapaxes(np.asarray(arr), 0, 1)
         done += length
         elapsed = time.perf_counter() - start
-        log(f"collect {config.crowd}: {done * b:,}/{config.frames:,} frames, {elapsed:.1f} s "
-            f"({done * b / elapsed:,.0f} frames/s)")
+        log(
+            f"collect {config.crowd}: {done * b:,}/{config.frames:,} frames, {elapsed:.1f} s "
+            f"({done * b / elapsed:,.0f} frames/s)"
+        )
     out["seg"] = out["seg"].astype(np.int16 if out["seg"].max() < 2**15 else np.int32)
     return {"arrays": out, "config": dataclasses.asdict(config), "collect_seconds": time.perf_counter() - start}
 
@@ -174,8 +185,12 @@ def content_hash(arrays: dict) -> str:
     return h.hexdigest()
 
 
-_KINDS = {"robot_pos": ("f", "floating-point"), "human_pos": ("f", "floating-point"), "visible": ("b", "boolean"),
-          "seg": ("iu", "integer")}
+_KINDS = {
+    "robot_pos": ("f", "floating-point"),
+    "human_pos": ("f", "floating-point"),
+    "visible": ("b", "boolean"),
+    "seg": ("iu", "integer"),
+}
 
 
 def check_arrays(arrays: dict, where: str) -> None:
@@ -217,11 +232,17 @@ def load_dataset(path) -> dict:
         raise DatasetError(f"{where} has format {found!r}; this version reads {_FORMAT}")
     config = meta.get("config")
     if not isinstance(config, dict) or not isinstance(config.get("crowd"), str):
-        raise DatasetError(f"{where}: its metadata has no config with a crowd name (config = "
-                           f"{str(config)[:80]}); collect it again with `tgrf-predictor collect`")
+        raise DatasetError(
+            f"{where}: its metadata has no config with a crowd name (config = "
+            f"{str(config)[:80]}); collect it again with `tgrf-predictor collect`"
+        )
     check_arrays(arrays, where)
-    return {"arrays": arrays, "config": config, "collect_seconds": meta.get("collect_seconds"),
-            "sha256": content_hash(arrays)}
+    return {
+        "arrays": arrays,
+        "config": config,
+        "collect_seconds": meta.get("collect_seconds"),
+        "sha256": content_hash(arrays),
+    }
 
 
 # ------------------------------------------------------------------------------------------ windows
@@ -232,7 +253,7 @@ def window_index(visible, seg, envs) -> np.ndarray:
         vis = visible[b].astype(np.int32)  # (T, N)
         csum = np.concatenate([np.zeros((1, vis.shape[1]), np.int32), np.cumsum(vis, 0)])
         full = (csum[WINDOW:] - csum[:-WINDOW]) == WINDOW  # (T - 9, N) visible in all 10 frames
-        same = seg[b][WINDOW - 1:] == seg[b][:-(WINDOW - 1)]  # and no re-entry or respawn inside
+        same = seg[b][WINDOW - 1 :] == seg[b][: -(WINDOW - 1)]  # and no re-entry or respawn inside
         starts = np.nonzero(np.any(full & same, axis=1))[0]
         rows.append(np.stack([np.full_like(starts, b), starts], 1))
     return np.concatenate(rows).astype(np.int32)
@@ -242,8 +263,10 @@ def split_index(arrays) -> tuple[np.ndarray, np.ndarray]:
     """Train / validation windows: the first 80% of the envs (episodes) train, the rest validate."""
     b = arrays["visible"].shape[0]
     cut = max(1, min(b - 1, int(round(TRAIN_FRACTION * b))))
-    return (window_index(arrays["visible"], arrays["seg"], range(cut)),
-            window_index(arrays["visible"], arrays["seg"], range(cut, b)))
+    return (
+        window_index(arrays["visible"], arrays["seg"], range(cut)),
+        window_index(arrays["visible"], arrays["seg"], range(cut, b)),
+    )
 
 
 @struct.dataclass
@@ -273,7 +296,7 @@ def make_window(data: dict, env_start) -> Batch:
         positions=jnp.swapaxes(obs, 0, 1),
         visible=present[:OBS_LEN].T,
         target=jnp.swapaxes(pos[OBS_LEN:], 0, 1),
-        target_valid=(present[OBS_LEN:] & present[OBS_LEN - 1:-1]).T,
+        target_valid=(present[OBS_LEN:] & present[OBS_LEN - 1 : -1]).T,
     )
 
 

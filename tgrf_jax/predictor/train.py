@@ -37,8 +37,14 @@ from tgrf_jax.storage.lock import exclusive
 YARDSTICK = {"ade": 0.158, "fde": 0.322}
 MEAN_LOSSES = ("ade", "nll")
 # batch_size: a batch's windows are built on the device at once; updates: the step counter is int32
-_LIMITS = {"updates": 2**31 - 1, "batch_size": 65_536, "decay_every": 2**31 - 1, "log_every": 2**31 - 1,
-           "checkpoint_every": 2**31 - 1, "eval_windows": 10_000_000}
+_LIMITS = {
+    "updates": 2**31 - 1,
+    "batch_size": 65_536,
+    "decay_every": 2**31 - 1,
+    "log_every": 2**31 - 1,
+    "checkpoint_every": 2**31 - 1,
+    "eval_windows": 10_000_000,
+}
 _CORR_LIMIT = 0.999  # keeps log(1 - rho^2) finite; tanh outputs saturate in float32 otherwise
 
 
@@ -105,8 +111,12 @@ def nll_terms(g: StepGaussians, batch: data_lib.Batch):
     n = (displacements(batch) - g.mu) / g.sigma
     nx, ny = n[..., 0], n[..., 1]
     one_m = 1.0 - corr * corr
-    nll = (0.5 * jnp.log(one_m) + jnp.log(g.sigma[..., 0]) + jnp.log(g.sigma[..., 1])
-           + (nx * nx - 2.0 * corr * nx * ny + ny * ny) / (2.0 * one_m))
+    nll = (
+        0.5 * jnp.log(one_m)
+        + jnp.log(g.sigma[..., 0])
+        + jnp.log(g.sigma[..., 1])
+        + (nx * nx - 2.0 * corr * nx * ny + ny * ny) / (2.0 * one_m)
+    )
     mask = batch.target_valid & g.out_mask[:, None]
     return jnp.where(mask, nll, 0.0), mask
 
@@ -132,13 +142,14 @@ def gaussians_loss(g: StepGaussians, batch: data_lib.Batch, mean_loss: str = "nl
     return loss
 
 
-def loss_fn(params, batch: data_lib.Batch, dropout_key, config: "TrainConfig"):
+def loss_fn(params, batch: data_lib.Batch, dropout_key, config: TrainConfig):
     """`gaussians_loss` of the model's predictions under training conditions (dropout). Under "ade" the NLL
     reaches only the output head's spread rows, so the network's state is shaped by the position error alone."""
     keys = jax.random.split(dropout_key, batch.positions.shape[0])
     model = functools.partial(step_gaussians, dropout=config.dropout, detach_spreads=config.mean_loss == "ade")
     g = jax.vmap(lambda b, k: model(params, b.positions, b.visible, dropout_key=k if config.dropout else None))(
-        batch, keys)
+        batch, keys
+    )
     return gaussians_loss(g, batch, config.mean_loss)
 
 
@@ -146,16 +157,21 @@ def train_chunk(state: TrainState, data: dict, index, config: TrainConfig, lengt
     """`length` updates -> (state, mean loss). Batches are drawn from `fold_in(key, step)`, so a resumed run
     draws the same batches as an uninterrupted one."""
     # what the compiled program depends on
-    learning = (config.batch_size, config.lr, config.decay_every, config.decay_rate, config.mean_loss,
-                config.dropout)
+    learning = (config.batch_size, config.lr, config.decay_every, config.decay_rate, config.mean_loss, config.dropout)
     return _train_chunk(state, data, index, learning=learning, length=length)
 
 
 @functools.partial(jax.jit, static_argnames=("learning", "length"))
 def _train_chunk(state: TrainState, data: dict, index, *, learning: tuple, length: int):
     batch_size, lr, decay_every, decay_rate, mean_loss, dropout = learning
-    config = TrainConfig(batch_size=batch_size, lr=lr, decay_every=decay_every, decay_rate=decay_rate,
-                         mean_loss=mean_loss, dropout=dropout)
+    config = TrainConfig(
+        batch_size=batch_size,
+        lr=lr,
+        decay_every=decay_every,
+        decay_rate=decay_rate,
+        mean_loss=mean_loss,
+        dropout=dropout,
+    )
     opt = optimizer(config)
     windows = jax.vmap(lambda es: data_lib.make_window(data, es))
 
@@ -176,8 +192,12 @@ def init_state(config: TrainConfig) -> TrainState:
     key = jax.random.key(config.seed)
     k_init, k_run = jax.random.split(key)
     params = init_params(k_init, cv_prior=config.cv_prior)
-    return TrainState(params=params, opt_state=optimizer(config).init(params), step=jnp.zeros((), jnp.int32),
-                      key=jax.random.key_data(k_run))
+    return TrainState(
+        params=params,
+        opt_state=optimizer(config).init(params),
+        step=jnp.zeros((), jnp.int32),
+        key=jax.random.key_data(k_run),
+    )
 
 
 # ------------------------------------------------------------------------------------------ evaluation
@@ -200,9 +220,13 @@ def _window_sums(params, data: dict, env_start, weight):
     err = lambda p: jnp.linalg.norm(p - b.target, axis=-1)  # noqa: E731
     nll, mask = nll_terms(g, b)
     return dict(
-        humans=jnp.sum(w), ade=jnp.sum(w * jnp.mean(err(pred), -1)), fde=jnp.sum(w * err(pred)[:, -1]),
-        cv_ade=jnp.sum(w * jnp.mean(err(cv), -1)), cv_fde=jnp.sum(w * err(cv)[:, -1]),
-        nll=jnp.sum(nll) * weight, nll_count=jnp.sum(mask) * weight,
+        humans=jnp.sum(w),
+        ade=jnp.sum(w * jnp.mean(err(pred), -1)),
+        fde=jnp.sum(w * err(pred)[:, -1]),
+        cv_ade=jnp.sum(w * jnp.mean(err(cv), -1)),
+        cv_fde=jnp.sum(w * err(cv)[:, -1]),
+        nll=jnp.sum(nll) * weight,
+        nll_count=jnp.sum(mask) * weight,
     )
 
 
@@ -238,21 +262,28 @@ def make_evaluator(data: dict, chunk: int = 1000):
         pad = (-len(index)) % chunk
         padded = np.concatenate([index, np.repeat(index[:1], pad, 0)])
         weight = (np.arange(len(padded)) < len(index)).astype(np.float32)
-        parts = [jax.device_get(_eval_chunk(params, data, padded[s:s + chunk], weight[s:s + chunk]))
-                 for s in range(0, len(padded), chunk)]
-        per_window = {k: np.concatenate([p[k] for p in parts])[:len(index)].astype(np.float64) for k in parts[0]}
+        parts = [
+            jax.device_get(_eval_chunk(params, data, padded[s : s + chunk], weight[s : s + chunk]))
+            for s in range(0, len(padded), chunk)
+        ]
+        per_window = {k: np.concatenate([p[k] for p in parts])[: len(index)].astype(np.float64) for k in parts[0]}
         totals = {k: float(v.sum()) for k, v in per_window.items()}
         h = max(totals["humans"], 1.0)
         ade_change, ade_ci = relative_change(per_window["ade"], per_window["cv_ade"], index[:, 0])
         fde_change, fde_ci = relative_change(per_window["fde"], per_window["cv_fde"], index[:, 0])
         return {
-            "windows": int(len(index)), "humans": int(totals["humans"]),
+            "windows": int(len(index)),
+            "humans": int(totals["humans"]),
             "episodes": int(len(np.unique(index[:, 0]))),
-            "ade": totals["ade"] / h, "fde": totals["fde"] / h,
+            "ade": totals["ade"] / h,
+            "fde": totals["fde"] / h,
             "nll": totals["nll"] / max(totals["nll_count"], 1.0),
-            "cv_ade": totals["cv_ade"] / h, "cv_fde": totals["cv_fde"] / h,
-            "ade_change": ade_change, "ade_change_ci95": ade_ci,
-            "fde_change": fde_change, "fde_change_ci95": fde_ci,
+            "cv_ade": totals["cv_ade"] / h,
+            "cv_fde": totals["cv_fde"] / h,
+            "ade_change": ade_change,
+            "ade_change_ci95": ade_ci,
+            "fde_change": fde_change,
+            "fde_change_ci95": fde_ci,
         }
 
     return evaluate
@@ -260,17 +291,21 @@ def make_evaluator(data: dict, chunk: int = 1000):
 
 def format_eval(metrics: dict, label: str) -> str:
     y = YARDSTICK
-    change = lambda k: (f"{k.upper()} {metrics[k + '_change']:+.1%} "  # noqa: E731
-                        f"(95% interval {metrics[k + '_change_ci95'][0]:+.1%} to {metrics[k + '_change_ci95'][1]:+.1%})")
-    return "\n".join([
-        f"held-out {label}: {metrics['windows']:,} windows of {metrics['episodes']} episodes, "
-        f"{metrics['humans']:,} predicted humans seen for 1.25 s",
-        f"  {'predictor':<28} {'ADE m':>7} {'FDE m':>7} {'NLL':>7}",
-        f"  {'GST (this model)':<28} {metrics['ade']:>7.3f} {metrics['fde']:>7.3f} {metrics['nll']:>7.3f}",
-        f"  {'constant velocity':<28} {metrics['cv_ade']:>7.3f} {metrics['cv_fde']:>7.3f} {'-':>7}",
-        f"  {'CrowdNav++ non-rand (README)':<28} {y['ade']:>7.3f} {y['fde']:>7.3f} {'-':>7}   (its own ORCA data)",
-        f"  GST against constant velocity: {change('ade')}, {change('fde')}; episodes resampled",
-    ])
+    change = lambda k: (
+        f"{k.upper()} {metrics[k + '_change']:+.1%} "  # noqa: E731
+        f"(95% interval {metrics[k + '_change_ci95'][0]:+.1%} to {metrics[k + '_change_ci95'][1]:+.1%})"
+    )
+    return "\n".join(
+        [
+            f"held-out {label}: {metrics['windows']:,} windows of {metrics['episodes']} episodes, "
+            f"{metrics['humans']:,} predicted humans seen for 1.25 s",
+            f"  {'predictor':<28} {'ADE m':>7} {'FDE m':>7} {'NLL':>7}",
+            f"  {'GST (this model)':<28} {metrics['ade']:>7.3f} {metrics['fde']:>7.3f} {metrics['nll']:>7.3f}",
+            f"  {'constant velocity':<28} {metrics['cv_ade']:>7.3f} {metrics['cv_fde']:>7.3f} {'-':>7}",
+            f"  {'CrowdNav++ non-rand (README)':<28} {y['ade']:>7.3f} {y['fde']:>7.3f} {'-':>7}   (its own ORCA data)",
+            f"  GST against constant velocity: {change('ade')}, {change('fde')}; episodes resampled",
+        ]
+    )
 
 
 # ------------------------------------------------------------------------------------------ run
@@ -293,12 +328,15 @@ def _fixed(meta: dict) -> dict:
 def _saved_meta(path: pathlib.Path) -> dict:
     try:
         saved = json.loads(path.read_text())
-        if not (isinstance(saved, dict) and isinstance(saved.get("train"), dict)
-                and isinstance(saved.get("dataset"), dict)):
+        if not (
+            isinstance(saved, dict) and isinstance(saved.get("train"), dict) and isinstance(saved.get("dataset"), dict)
+        ):
             raise ValueError("no train and dataset sections")
     except (OSError, UnicodeDecodeError, ValueError) as e:
-        raise CheckpointError(f"{str(path)!r} is damaged ({type(e).__name__}: {str(e)[:80]}): the run's settings are "
-                              "unknown; use a new --run-dir") from None
+        raise CheckpointError(
+            f"{str(path)!r} is damaged ({type(e).__name__}: {str(e)[:80]}): the run's settings are "
+            "unknown; use a new --run-dir"
+        ) from None
     return saved
 
 
@@ -309,20 +347,30 @@ def _check_run_dir(run_dir: pathlib.Path, meta: dict) -> None:
         others = [name for name in ("config.yaml", "sweep.yaml", "experiment.yaml") if (run_dir / name).exists()]
         if others or (run_dir / "checkpoints").exists():
             what = others[0] if others else "checkpoints/"
-            raise CheckpointError(f"--run-dir {str(run_dir)!r} holds {what} but no run.json: it is not a "
-                                  "tgrf-predictor run directory; use a new --run-dir")
+            raise CheckpointError(
+                f"--run-dir {str(run_dir)!r} holds {what} but no run.json: it is not a "
+                "tgrf-predictor run directory; use a new --run-dir"
+            )
         return
     saved = _saved_meta(meta_path)
     saved_fixed, wanted = _fixed(saved), _fixed(meta)
     if saved_fixed != wanted:
-        diff = sorted(k for part in ("train", "dataset") for k in set(saved_fixed[part]) | set(wanted[part])
-                      if saved_fixed[part].get(k) != wanted[part].get(k))
-        raise CheckpointError(f"run directory {str(run_dir)!r} holds a run with another config (differs in "
-                              f"{', '.join(diff)}); use a new --run-dir or the same options")
+        diff = sorted(
+            k
+            for part in ("train", "dataset")
+            for k in set(saved_fixed[part]) | set(wanted[part])
+            if saved_fixed[part].get(k) != wanted[part].get(k)
+        )
+        raise CheckpointError(
+            f"run directory {str(run_dir)!r} holds a run with another config (differs in "
+            f"{', '.join(diff)}); use a new --run-dir or the same options"
+        )
     if saved.get("dataset_sha256") != meta["dataset_sha256"]:
-        raise CheckpointError(f"run directory {str(run_dir)!r} was trained on another dataset (content SHA-256 "
-                              f"{str(saved.get('dataset_sha256'))[:12]}, this one {meta['dataset_sha256'][:12]}); "
-                              "resume with the same dataset file, or use a new --run-dir")
+        raise CheckpointError(
+            f"run directory {str(run_dir)!r} was trained on another dataset (content SHA-256 "
+            f"{str(saved.get('dataset_sha256'))[:12]}, this one {meta['dataset_sha256'][:12]}); "
+            "resume with the same dataset file, or use a new --run-dir"
+        )
 
 
 def _steps(ckpt_dir: pathlib.Path) -> list[int]:
@@ -335,8 +383,9 @@ def _steps(ckpt_dir: pathlib.Path) -> list[int]:
         reader.close()
 
 
-def train(config: TrainConfig, dataset: dict, run_dir, log=print, resume: bool = True,
-          from_step: int | None = None) -> tuple[dict, dict]:
+def train(
+    config: TrainConfig, dataset: dict, run_dir, log=print, resume: bool = True, from_step: int | None = None
+) -> tuple[dict, dict]:
     """Train (resuming from `run_dir`'s latest checkpoint if there is one, or from checkpoint `from_step`, whose
     later checkpoints are deleted); returns (params, run metadata). The process holds the run directory's lock
     (`tgrf_jax.storage.lock`) while it writes there; everything is checked before run.json is written."""
@@ -348,14 +397,18 @@ def train(config: TrainConfig, dataset: dict, run_dir, log=print, resume: bool =
         _check_run_dir(run_dir, meta)  # again, now that no other process can write it
         steps = _steps(run_dir / "checkpoints") if resume else []
         if from_step is not None and from_step not in steps:
-            raise CheckpointError(f"--from-step {from_step}: {str(run_dir / 'checkpoints')!r} holds no checkpoint "
-                                  f"of update {from_step}; it holds: {', '.join(map(str, steps)) or 'none'}")
+            raise CheckpointError(
+                f"--from-step {from_step}: {str(run_dir / 'checkpoints')!r} holds no checkpoint "
+                f"of update {from_step}; it holds: {', '.join(map(str, steps)) or 'none'}"
+            )
         step = from_step if from_step is not None else (steps[-1] if steps else None)
         if step is not None and step > config.updates:
-            raise CheckpointError(f"--updates {config.updates} is below the progress of {str(run_dir)!r}: its "
-                                  f"checkpoint of update {step} would be labelled {config.updates}; give --updates "
-                                  f">= {step}, or --from-step N to go back to an earlier checkpoint (it holds: "
-                                  f"{', '.join(map(str, steps))})")
+            raise CheckpointError(
+                f"--updates {config.updates} is below the progress of {str(run_dir)!r}: its "
+                f"checkpoint of update {step} would be labelled {config.updates}; give --updates "
+                f">= {step}, or --from-step N to go back to an earlier checkpoint (it holds: "
+                f"{', '.join(map(str, steps))})"
+            )
         write_atomic(run_dir / "run.json", json.dumps(meta, indent=2, sort_keys=True))
         return _train(config, dataset, run_dir, meta, step, log)
 
@@ -381,13 +434,17 @@ def _train(config: TrainConfig, dataset: dict, run_dir: pathlib.Path, meta: dict
             step = int(state.step)
             if not np.isfinite(float(loss)):  # nothing of this chunk is saved: its weights are not finite
                 kept = ckpt.latest_step()
-                raise TrainingError(f"the training loss is {float(loss)} in the updates {before + 1}..{step}: the "
-                                    f"training diverged (lower --lr) or the data is not finite; the checkpoints up "
-                                    f"to update {kept} in {str(run_dir / 'checkpoints')!r} are kept")
+                raise TrainingError(
+                    f"the training loss is {float(loss)} in the updates {before + 1}..{step}: the "
+                    f"training diverged (lower --lr) or the data is not finite; the checkpoints up "
+                    f"to update {kept} in {str(run_dir / 'checkpoints')!r} are kept"
+                )
             rate = (step - before) / (time.perf_counter() - tick)  # this chunk's (the first includes compilation)
             lr = schedule(config)(step - 1)
-            log(f"update {step:>6}/{config.updates}  loss {float(loss):8.4f}  lr {float(lr):.2e}  "
-                f"{rate:6.1f} updates/s ({rate * config.batch_size:,.0f} windows/s)")
+            log(
+                f"update {step:>6}/{config.updates}  loss {float(loss):8.4f}  lr {float(lr):.2e}  "
+                f"{rate:6.1f} updates/s ({rate * config.batch_size:,.0f} windows/s)"
+            )
             if step % config.checkpoint_every == 0 or step == config.updates:
                 ckpt.save(step, state)
     finally:

@@ -33,8 +33,9 @@ def resolve(name_or_path: str) -> pathlib.Path:
         path = ROOT / name_or_path
     if not path.is_dir():
         names = ", ".join(available()) or "none shipped yet"
-        raise ConfigError(f"no pretrained policy {name_or_path!r}: not a directory and not a shipped name "
-                          f"(shipped: {names})")
+        raise ConfigError(
+            f"no pretrained policy {name_or_path!r}: not a directory and not a shipped name (shipped: {names})"
+        )
     missing = [f for f in FILES if not (path / f).is_file()]
     if missing:
         raise ConfigError(f"{str(path)!r} is not a pretrained policy: {', '.join(missing)} missing")
@@ -81,13 +82,17 @@ def load(name_or_path: str):
     net = make_network_for(config)
     expected = _flatten(jax.eval_shape(net.init, jax.random.PRNGKey(0)))
     if set(flat) != set(expected):
-        raise ConfigError(f"{str(path / 'params.npz')!r} does not fit the {config.network.name}/"
-                          f"{config.network.size} network of its config.yaml: parameter names differ "
-                          f"({sorted(set(flat) ^ set(expected))[:4]} ...)")
+        raise ConfigError(
+            f"{str(path / 'params.npz')!r} does not fit the {config.network.name}/"
+            f"{config.network.size} network of its config.yaml: parameter names differ "
+            f"({sorted(set(flat) ^ set(expected))[:4]} ...)"
+        )
     for k, v in flat.items():
         if v.shape != expected[k].shape:
-            raise ConfigError(f"{str(path / 'params.npz')!r}: {k} has shape {v.shape}, the config's network "
-                              f"expects {expected[k].shape}")
+            raise ConfigError(
+                f"{str(path / 'params.npz')!r}: {k} has shape {v.shape}, the config's network "
+                f"expects {expected[k].shape}"
+            )
     return config, _unflatten(flat), meta
 
 

@@ -39,17 +39,35 @@ GOAL_COLOR = "#2ca02c"
 DANGER_COLOR = "#d62728"
 PATH_COLOR = "#e07b00"
 TERM_COLORS = {
-    "goal": "#2ca02c", "collision": "#7f0000", "disc": "#d62728", "pot": "#1f77b4", "pred": "#ff8c1a",
+    "goal": "#2ca02c",
+    "collision": "#7f0000",
+    "disc": "#d62728",
+    "pot": "#1f77b4",
+    "pred": "#ff8c1a",
     "kinematic": "#9467bd",
 }
 TERM_LABELS = {
-    "goal": "r_goal", "collision": "r_col", "disc": "r_disc", "pot": "r_pot", "pred": "r_pred",
+    "goal": "r_goal",
+    "collision": "r_col",
+    "disc": "r_disc",
+    "pot": "r_pot",
+    "pred": "r_pred",
     "kinematic": "r_spin + r_back",
 }
-OUTCOME_COLORS = {"running": "#333333", "success": "#1a7f1a", "collision": "#b00000", "timeout": "#8a6d00",
-                  "obstacle_collision": "#7b1fa2"}
-OUTCOME_LABELS = {"running": "running", "success": "success", "collision": "collision", "timeout": "timeout",
-                  "obstacle_collision": "obstacle collision"}
+OUTCOME_COLORS = {
+    "running": "#333333",
+    "success": "#1a7f1a",
+    "collision": "#b00000",
+    "timeout": "#8a6d00",
+    "obstacle_collision": "#7b1fa2",
+}
+OUTCOME_LABELS = {
+    "running": "running",
+    "success": "success",
+    "collision": "collision",
+    "timeout": "timeout",
+    "obstacle_collision": "obstacle collision",
+}
 OBSTACLE_COLOR = "#9a9a9a"
 OBSTACLE_EDGE = "#474747"
 WALL_WIDTH = 4.0  # points: a wall segment has no thickness, so it is drawn as a thick line
@@ -121,10 +139,19 @@ def _legend_handles(ep: Episode, show_rays: bool = False):
     unseen = "human, out of sight" if ep.occlusion else "human, out of range"  # occlusion: range or a wall
     handles = [
         Line2D([], [], markerfacecolor=ROBOT_COLOR, markeredgecolor="black", label="robot", **dot),
-        Line2D([], [], marker="*", linestyle="none", markersize=13, markerfacecolor=GOAL_COLOR,
-               markeredgecolor="black", label="goal"),
-        Line2D([], [], markerfacecolor=VISIBLE_COLOR, markeredgecolor=VISIBLE_EDGE, label="human, in sensor range",
-               **dot),
+        Line2D(
+            [],
+            [],
+            marker="*",
+            linestyle="none",
+            markersize=13,
+            markerfacecolor=GOAL_COLOR,
+            markeredgecolor="black",
+            label="goal",
+        ),
+        Line2D(
+            [], [], markerfacecolor=VISIBLE_COLOR, markeredgecolor=VISIBLE_EDGE, label="human, in sensor range", **dot
+        ),
         Line2D([], [], markerfacecolor=UNSEEN_COLOR, markeredgecolor=UNSEEN_EDGE, label=unseen, **dot),
         Line2D([], [], color=PRED_COLOR, marker="o", markersize=4, linewidth=1.3, label="predicted positions"),
         Line2D([], [], color="#606060", linestyle="--", label="sensor range"),
@@ -138,8 +165,17 @@ def _legend_handles(ep: Episode, show_rays: bool = False):
     if any(len(p) == 2 for p in ep.obstacles):
         handles.append(Line2D([], [], color=OBSTACLE_EDGE, linewidth=WALL_WIDTH, label="wall"))
     if show_rays:
-        handles.append(Line2D([], [], color=LIDAR_COLOR, linewidth=0.8, marker="o", markersize=3.5,
-                              label=f"LiDAR, {ep.lidar_rays} rays"))
+        handles.append(
+            Line2D(
+                [],
+                [],
+                color=LIDAR_COLOR,
+                linewidth=0.8,
+                marker="o",
+                markersize=3.5,
+                label=f"LiDAR, {ep.lidar_rays} rays",
+            )
+        )
     return handles
 
 
@@ -154,14 +190,25 @@ class FramePainter:
     its end point and `ray_hits` (gid "lidar_hits") the points where rays hit something.
     """
 
-    def __init__(self, ax, ep: Episode, *, trail_steps: int | None = 20, show_legend: bool = True, limits=None,
-                 title: str | None = None, show_rays: bool = False):
+    def __init__(
+        self,
+        ax,
+        ep: Episode,
+        *,
+        trail_steps: int | None = 20,
+        show_legend: bool = True,
+        limits=None,
+        title: str | None = None,
+        show_rays: bool = False,
+    ):
         from matplotlib.collections import EllipseCollection, LineCollection, PolyCollection
         from matplotlib.patches import Circle
 
         if show_rays and ep.lidar is None:
-            raise ValueError("show_rays needs LiDAR scans, and this episode's env has none: set env.lidar_rays > 0 "
-                             "(rays per scan) to record them")
+            raise ValueError(
+                "show_rays needs LiDAR scans, and this episode's env has none: set env.lidar_rays > 0 "
+                "(rays per scan) to record them"
+            )
         self.ax, self.ep, self.trail_steps, self.show_rays = ax, ep, trail_steps, bool(show_rays)
         self.dmin = ep.dmin()
         ax.clear()
@@ -177,68 +224,160 @@ class FramePainter:
 
         # Sensor range and danger zone, centred on the robot.
         r0 = ep.robot_pos[0]
-        self.sensor_fill = ax.add_patch(Circle(r0, ep.robot_radius + ep.sensor_range, facecolor="#808080",
-                                               alpha=0.06, edgecolor="none", zorder=0))
-        self.sensor_edge = ax.add_patch(Circle(r0, ep.robot_radius + ep.sensor_range, fill=False, edgecolor="#606060",
-                                               linestyle="--", linewidth=1.0, zorder=1, gid="sensor_range"))
-        self.danger_fill = ax.add_patch(Circle(r0, ep.robot_radius + ep.d_disc, facecolor=DANGER_COLOR, alpha=0.07,
-                                               edgecolor="none", zorder=2))
-        self.danger_edge = ax.add_patch(Circle(r0, ep.robot_radius + ep.d_disc, fill=False, edgecolor=DANGER_COLOR,
-                                               linestyle=":", linewidth=1.3, zorder=2, gid="danger_zone"))
+        self.sensor_fill = ax.add_patch(
+            Circle(r0, ep.robot_radius + ep.sensor_range, facecolor="#808080", alpha=0.06, edgecolor="none", zorder=0)
+        )
+        self.sensor_edge = ax.add_patch(
+            Circle(
+                r0,
+                ep.robot_radius + ep.sensor_range,
+                fill=False,
+                edgecolor="#606060",
+                linestyle="--",
+                linewidth=1.0,
+                zorder=1,
+                gid="sensor_range",
+            )
+        )
+        self.danger_fill = ax.add_patch(
+            Circle(r0, ep.robot_radius + ep.d_disc, facecolor=DANGER_COLOR, alpha=0.07, edgecolor="none", zorder=2)
+        )
+        self.danger_edge = ax.add_patch(
+            Circle(
+                r0,
+                ep.robot_radius + ep.d_disc,
+                fill=False,
+                edgecolor=DANGER_COLOR,
+                linestyle=":",
+                linewidth=1.3,
+                zorder=2,
+                gid="danger_zone",
+            )
+        )
         # Goal (it does not move, but is drawn with the moving artists to keep the stacking order).
-        self.goal_ring = ax.add_patch(Circle(ep.goal, ep.goal_tolerance, fill=False, edgecolor=GOAL_COLOR,
-                                             linewidth=1.2, zorder=3))
-        (self.goal_star,) = ax.plot(*ep.goal, marker="*", markersize=16, color=GOAL_COLOR, markeredgecolor="black",
-                                    markeredgewidth=0.6, zorder=3, linestyle="none")
+        self.goal_ring = ax.add_patch(
+            Circle(ep.goal, ep.goal_tolerance, fill=False, edgecolor=GOAL_COLOR, linewidth=1.2, zorder=3)
+        )
+        (self.goal_star,) = ax.plot(
+            *ep.goal,
+            marker="*",
+            markersize=16,
+            color=GOAL_COLOR,
+            markeredgecolor="black",
+            markeredgewidth=0.6,
+            zorder=3,
+            linestyle="none",
+        )
         # Static obstacles (drawn with the moving artists, so that every frame stacks them the same way).
         polygons = [p for p in ep.obstacles if len(p) >= 3]
         walls = [p for p in ep.obstacles if len(p) == 2]
-        self.obstacles = ax.add_collection(PolyCollection(
-            polygons, facecolors=OBSTACLE_COLOR, edgecolors=OBSTACLE_EDGE, linewidths=1.2, zorder=1.7,
-            gid="obstacles"), autolim=False) if polygons else None
-        self.walls = ax.add_collection(LineCollection(
-            walls, colors=OBSTACLE_EDGE, linewidths=WALL_WIDTH, capstyle="round", zorder=1.7, gid="walls"),
-            autolim=False) if walls else None
+        self.obstacles = (
+            ax.add_collection(
+                PolyCollection(
+                    polygons,
+                    facecolors=OBSTACLE_COLOR,
+                    edgecolors=OBSTACLE_EDGE,
+                    linewidths=1.2,
+                    zorder=1.7,
+                    gid="obstacles",
+                ),
+                autolim=False,
+            )
+            if polygons
+            else None
+        )
+        self.walls = (
+            ax.add_collection(
+                LineCollection(
+                    walls, colors=OBSTACLE_EDGE, linewidths=WALL_WIDTH, capstyle="round", zorder=1.7, gid="walls"
+                ),
+                autolim=False,
+            )
+            if walls
+            else None
+        )
         # LiDAR rays (over the obstacles, under the agents) and their hits.
         self.rays = self.ray_hits = None
         if self.show_rays:
-            self.rays = ax.add_collection(LineCollection([], colors=LIDAR_COLOR, linewidths=0.7, zorder=3.5,
-                                                         gid="lidar_rays"), autolim=False)
+            self.rays = ax.add_collection(
+                LineCollection([], colors=LIDAR_COLOR, linewidths=0.7, zorder=3.5, gid="lidar_rays"), autolim=False
+            )
             # the hits lie on the humans' edges: drawn over the discs
-            self.ray_hits = ax.scatter(np.zeros(0), np.zeros(0), s=9, color=LIDAR_COLOR, edgecolors="none",
-                                       zorder=9.5, gid="lidar_hits")
+            self.ray_hits = ax.scatter(
+                np.zeros(0), np.zeros(0), s=9, color=LIDAR_COLOR, edgecolors="none", zorder=9.5, gid="lidar_hits"
+            )
         # Trajectories.
-        self.trails = ax.add_collection(LineCollection([], colors="#7a7a7a", linewidths=1.0, alpha=0.55, zorder=4),
-                                        autolim=False)
+        self.trails = ax.add_collection(
+            LineCollection([], colors="#7a7a7a", linewidths=1.0, alpha=0.55, zorder=4), autolim=False
+        )
         (self.path,) = ax.plot([], [], color=PATH_COLOR, linewidth=2.2, zorder=5, solid_capstyle="round")
         # Humans, in human-index order.
         n = ep.num_humans
-        self.humans = EllipseCollection(np.zeros(n), np.zeros(n), np.zeros(n), units="xy", offsets=np.zeros((n, 2)),
-                                        offset_transform=ax.transData, linewidths=1.0, zorder=8, gid="humans")
+        self.humans = EllipseCollection(
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros(n),
+            units="xy",
+            offsets=np.zeros((n, 2)),
+            offset_transform=ax.transData,
+            linewidths=1.0,
+            zorder=8,
+            gid="humans",
+        )
         ax.add_collection(self.humans, autolim=False)
         # Observed predictions of the visible humans (over the humans, fading with the horizon).
-        self.pred_lines = ax.add_collection(LineCollection([], colors=PRED_COLOR, linewidths=1.3, alpha=0.9, zorder=9),
-                                            autolim=False)
+        self.pred_lines = ax.add_collection(
+            LineCollection([], colors=PRED_COLOR, linewidths=1.3, alpha=0.9, zorder=9), autolim=False
+        )
         self.pred_dots = ax.scatter(np.zeros(0), np.zeros(0), s=22, edgecolors="none", zorder=9, gid="predictions")
         # Robot and its velocity tick.
-        self.robot = ax.add_patch(Circle(r0, ep.robot_radius, facecolor=ROBOT_COLOR, edgecolor="black",
-                                         linewidth=1.3, zorder=10, gid="robot"))
+        self.robot = ax.add_patch(
+            Circle(r0, ep.robot_radius, facecolor=ROBOT_COLOR, edgecolor="black", linewidth=1.3, zorder=10, gid="robot")
+        )
         (self.tick,) = ax.plot([], [], color="black", linewidth=1.6, zorder=11)
         # Captions.
         box = dict(boxstyle="round,pad=0.35", facecolor="white", alpha=0.85, edgecolor="#bbbbbb")
-        self.caption = ax.text(0.015, 0.985, "", transform=ax.transAxes, va="top", ha="left", fontsize=9.5,
-                               family="monospace", zorder=20, bbox=box)
+        self.caption = ax.text(
+            0.015,
+            0.985,
+            "",
+            transform=ax.transAxes,
+            va="top",
+            ha="left",
+            fontsize=9.5,
+            family="monospace",
+            zorder=20,
+            bbox=box,
+        )
         color = OUTCOME_COLORS.get(ep.outcome, "black")
-        self.banner = ax.text(0.985, 0.985, f"{outcome_label(ep.outcome).upper()} at {ep.duration:.2f} s",
-                              transform=ax.transAxes, va="top", ha="right", fontsize=13, fontweight="bold",
-                              color=color, zorder=20, visible=False,
-                              bbox=dict(boxstyle="round,pad=0.35", facecolor="white", alpha=0.9, edgecolor=color))
+        self.banner = ax.text(
+            0.985,
+            0.985,
+            f"{outcome_label(ep.outcome).upper()} at {ep.duration:.2f} s",
+            transform=ax.transAxes,
+            va="top",
+            ha="right",
+            fontsize=13,
+            fontweight="bold",
+            color=color,
+            zorder=20,
+            visible=False,
+            bbox=dict(boxstyle="round,pad=0.35", facecolor="white", alpha=0.9, edgecolor=color),
+        )
         if show_legend:
             handles = _legend_handles(ep, self.show_rays)
             many = len(handles) > 8  # a third row: set closer, so that it fits the strip below the axes
-            ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=4,
-                      fontsize=8 if many else 8.5, labelspacing=0.3 if many else 0.5, frameon=False,
-                      handlelength=1.6, columnspacing=1.2)
+            ax.legend(
+                handles=handles,
+                loc="upper center",
+                bbox_to_anchor=(0.5, -0.09),
+                ncol=4,
+                fontsize=8 if many else 8.5,
+                labelspacing=0.3 if many else 0.5,
+                frameon=False,
+                handlelength=1.6,
+                columnspacing=1.2,
+            )
 
     def update(self, t: int):
         """Show state `t` (0 = the reset state, `ep.steps` = the final state); returns the changed artists."""
@@ -254,9 +393,9 @@ class FramePainter:
         start = 0 if self.trail_steps is None else max(0, t - self.trail_steps)
         segs = []
         for i in range(ep.num_humans):
-            segs += _trail_segments(ep.human_pos[start:t + 1, i], max_jump=1.0)
+            segs += _trail_segments(ep.human_pos[start : t + 1, i], max_jump=1.0)
         self.trails.set_segments(segs)
-        self.path.set_data(ep.robot_pos[:t + 1, 0], ep.robot_pos[:t + 1, 1])
+        self.path.set_data(ep.robot_pos[: t + 1, 0], ep.robot_pos[: t + 1, 1])
 
         if ep.num_humans:
             vis = ep.visible[t]
@@ -269,8 +408,9 @@ class FramePainter:
         rows = np.nonzero(ep.obs_mask[t])[0] if ep.pred_pos is not None else np.zeros(0, int)
         if len(rows):
             k = ep.pred_pos.shape[2]
-            self.pred_lines.set_segments([np.concatenate([ep.obs_human_pos[t, j][None], ep.pred_pos[t, j]])
-                                          for j in rows])
+            self.pred_lines.set_segments(
+                [np.concatenate([ep.obs_human_pos[t, j][None], ep.pred_pos[t, j]]) for j in rows]
+            )
             colors = np.zeros((len(rows) * k, 4))
             colors[:, :3] = (1.0, 0.55, 0.1)
             colors[:, 3] = np.tile(np.linspace(1.0, 0.45, k), len(rows))
@@ -302,12 +442,17 @@ class FramePainter:
 
         n_vis = int(ep.visible[t].sum()) if ep.num_humans else 0
         d_obs = np.inf if ep.obstacle_dist is None else float(ep.obstacle_dist[t])
-        lines = [f"t = {t * ep.dt:5.2f} s   step {t}/{ep.max_steps}",
-                 f"visible {n_vis}/{ep.num_humans}   d_min {dmin:.2f} m" + ("  DANGER" if in_danger else "")]
+        lines = [
+            f"t = {t * ep.dt:5.2f} s   step {t}/{ep.max_steps}",
+            f"visible {n_vis}/{ep.num_humans}   d_min {dmin:.2f} m" + ("  DANGER" if in_danger else ""),
+        ]
         if np.isfinite(d_obs):
             lines.append(f"nearest obstacle {d_obs:.2f} m")
-        lines.append(f"r_t = {ep.reward[t - 1]:+.2f}   return {ep.reward[:t].sum():+.2f}" if t > 0 else
-                     "r_t =   -     return +0.00")
+        lines.append(
+            f"r_t = {ep.reward[t - 1]:+.2f}   return {ep.reward[:t].sum():+.2f}"
+            if t > 0
+            else "r_t =   -     return +0.00"
+        )
         self.caption.set_text("\n".join(lines))
         self._banner_on = t == ep.steps and ep.steps > 0
         self.banner.set_visible(self._banner_on)
@@ -316,9 +461,27 @@ class FramePainter:
     @property
     def animated(self) -> list:
         """The artists `update` changes (plus the goal and the obstacles), in drawing order."""
-        artists = [self.sensor_fill, self.sensor_edge, self.danger_fill, self.danger_edge, self.goal_ring,
-                   self.goal_star, self.trails, self.path, self.humans, self.pred_lines, self.pred_dots, self.robot,
-                   self.tick, self.caption, self.banner, self.obstacles, self.walls, self.rays, self.ray_hits]
+        artists = [
+            self.sensor_fill,
+            self.sensor_edge,
+            self.danger_fill,
+            self.danger_edge,
+            self.goal_ring,
+            self.goal_star,
+            self.trails,
+            self.path,
+            self.humans,
+            self.pred_lines,
+            self.pred_dots,
+            self.robot,
+            self.tick,
+            self.caption,
+            self.banner,
+            self.obstacles,
+            self.walls,
+            self.rays,
+            self.ray_hits,
+        ]
         return sorted((a for a in artists if a is not None), key=lambda a: a.get_zorder())
 
     def render_rgb(self) -> np.ndarray:
@@ -376,7 +539,6 @@ def plot_frame(ep: Episode, t: int | None = None, **kwargs):
     return fig
 
 
-
 def plot_reward_terms(ep: Episode, *, title: str | None = None):
     """Figure: the reward of every step split into its terms (stacked bars, positive up, negative down, the total
     as a black line), and below it the return accumulated by each term."""
@@ -414,8 +576,11 @@ def plot_reward_terms(ep: Episode, *, title: str | None = None):
     ax_cum.set_ylabel("cumulative reward")
     ax_cum.grid(alpha=0.3)
     ax_cum.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
-    fig.suptitle(title or f"{ep.label}, episode {ep.index}: {outcome_label(ep.outcome)} after {ep.duration:.2f} s, "
-                 f"return {ep.ret:+.2f}")
+    fig.suptitle(
+        title
+        or f"{ep.label}, episode {ep.index}: {outcome_label(ep.outcome)} after {ep.duration:.2f} s, "
+        f"return {ep.ret:+.2f}"
+    )
     return fig
 
 

@@ -24,9 +24,20 @@ def ffmpeg_path() -> str | None:
     return shutil.which(rcParams["animation.ffmpeg_path"]) if FFMpegWriter.isAvailable() else None
 
 
-def save_episode(ep: Episode, out_dir, *, name: str | None = None, frames: bool = True, gif: bool = True,
-                 mp4: bool | None = None, fps: float = 8.0, dpi: int = 90, stride: int = 1,
-                 hold_s: float = 1.5, **draw_kwargs) -> dict:
+def save_episode(
+    ep: Episode,
+    out_dir,
+    *,
+    name: str | None = None,
+    frames: bool = True,
+    gif: bool = True,
+    mp4: bool | None = None,
+    fps: float = 8.0,
+    dpi: int = 90,
+    stride: int = 1,
+    hold_s: float = 1.5,
+    **draw_kwargs,
+) -> dict:
     """Write PNG frames (`<name>/frame_0000.png`...), `<name>.gif` and, when ffmpeg is on PATH, `<name>.mp4`.
 
     `mp4=None` writes the MP4 only if ffmpeg is found; `mp4=True` without ffmpeg raises. The last frame (the
@@ -72,14 +83,22 @@ def save_episode(ep: Episode, out_dir, *, name: str | None = None, frames: bool 
         gif_path = out_dir / f"{name}.gif"
         frame_ms = int(round(1000.0 / fps))
         durations = [frame_ms] * (len(gif_frames) - 1) + [max(frame_ms, int(hold_s * 1000))]
-        gif_frames[0].save(gif_path, save_all=True, append_images=gif_frames[1:], duration=durations, loop=0,
-                           optimize=False, disposal=1)
+        gif_frames[0].save(
+            gif_path,
+            save_all=True,
+            append_images=gif_frames[1:],
+            duration=durations,
+            loop=0,
+            optimize=False,
+            disposal=1,
+        )
         written["gif"] = gif_path
     return written
 
 
-def _write_mp4(fig, painter: FramePainter, ep: Episode, path: pathlib.Path, stride: int, fps: float, dpi: int,
-               hold_s: float) -> pathlib.Path:
+def _write_mp4(
+    fig, painter: FramePainter, ep: Episode, path: pathlib.Path, stride: int, fps: float, dpi: int, hold_s: float
+) -> pathlib.Path:
     from matplotlib.animation import FFMpegWriter
 
     writer = FFMpegWriter(fps=fps)
@@ -98,8 +117,14 @@ def animate(ep: Episode, *, stride: int = 1, fps: float = 8.0, dpi: int = 72, **
 
     fig, ax = new_figure(dpi=dpi)
     painter = FramePainter(ax, ep, **draw_kwargs)
-    return FuncAnimation(fig, painter.update, frames=_frame_indices(ep, stride), interval=1000.0 / fps, repeat=True,
-                         cache_frame_data=False)
+    return FuncAnimation(
+        fig,
+        painter.update,
+        frames=_frame_indices(ep, stride),
+        interval=1000.0 / fps,
+        repeat=True,
+        cache_frame_data=False,
+    )
 
 
 def to_jshtml(ep: Episode, *, stride: int = 1, fps: float = 8.0, dpi: int = 72, **draw_kwargs) -> str:

@@ -99,9 +99,15 @@ class Episode:
         return d.min(axis=1)
 
     def summary(self) -> dict:
-        return dict(label=self.label, episode=self.index, outcome=self.outcome, steps=self.steps,
-                    time=round(self.duration, 3), ret=round(self.ret, 4),
-                    path_length=round(float(np.linalg.norm(np.diff(self.robot_pos, axis=0), axis=-1).sum()), 4))
+        return dict(
+            label=self.label,
+            episode=self.index,
+            outcome=self.outcome,
+            steps=self.steps,
+            time=round(self.duration, 3),
+            ret=round(self.ret, 4),
+            path_length=round(float(np.linalg.norm(np.diff(self.robot_pos, axis=0), axis=-1).sum()), 4),
+        )
 
 
 def _record(env, policy, key, n_episodes: int, params, n_steps: int):
@@ -120,16 +126,23 @@ def _record(env, policy, key, n_episodes: int, params, n_steps: int):
     def snapshot(obs, state):
         visible = jax.vmap(env.visible, in_axes=(0, None))(state, params)
         out = dict(
-            robot_pos=state.robot.pos, robot_vel=state.robot.vel, goal=state.robot.goal,
+            robot_pos=state.robot.pos,
+            robot_vel=state.robot.vel,
+            goal=state.robot.goal,
             robot_heading=state.robot.heading,
-            human_pos=state.humans.pos, human_radius=state.humans.radius, visible=visible,
-            obs_humans=obs.humans, obs_mask=obs.human_mask, active=state.humans.active,
+            human_pos=state.humans.pos,
+            human_radius=state.humans.radius,
+            visible=visible,
+            obs_humans=obs.humans,
+            obs_mask=obs.human_mask,
+            active=state.humans.active,
         )
         if has_lidar:
             out["lidar"] = obs.lidar
         if has_obstacles:
-            out["obstacle_dist"] = jax.vmap(obstacles_lib.clearance)(state.robot.pos, state.obstacles) \
-                - params.robot_radius
+            out["obstacle_dist"] = (
+                jax.vmap(obstacles_lib.clearance)(state.robot.pos, state.obstacles) - params.robot_radius
+            )
         return out
 
     def step_one(key, state, action):
@@ -141,15 +154,15 @@ def _record(env, policy, key, n_episodes: int, params, n_steps: int):
         key, k_act, k_step = jax.random.split(key, 3)
         carry, action = policy.act(carry, obs, jnp.equal(t, 0) & alive, k_act)
         new_obs, new_state, reward, terminated, truncated, info = jax.vmap(step_one)(
-            jax.random.split(k_step, n_episodes), state, action)
+            jax.random.split(k_step, n_episodes), state, action
+        )
 
         def keep(new, old):
             return jnp.where(alive.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
 
         state = jax.tree_util.tree_map(keep, new_state, state)
         obs = jax.tree_util.tree_map(keep, new_obs, obs)
-        out = dict(snapshot(obs, state), alive=alive, reward=reward, outcome=info.outcome,
-                   terms=info.reward_terms)
+        out = dict(snapshot(obs, state), alive=alive, reward=reward, outcome=info.outcome, terms=info.reward_terms)
         return (key, obs, state, carry, alive & ~(terminated | truncated)), out
 
     k_reset, k_loop = jax.random.split(key)
@@ -162,7 +175,7 @@ def _record(env, policy, key, n_episodes: int, params, n_steps: int):
     return first, outs
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _record_jit():
     import jax
 
@@ -231,22 +244,38 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
         pred = obs_humans[:, :, 2:].reshape(steps + 1, n, k, 2) + robot_pos[:, None, None] if k else None
         counts = first["obstacle_counts"][b]
         layout = [np.array(first["obstacle_vertices"][b, m, :c], np.float64) for m, c in enumerate(counts) if c >= 2]
-        episodes.append(Episode(
-            label=label, index=b, robot_pos=robot_pos, robot_vel=seq("robot_vel"), goal=np.asarray(first["goal"][b]),
-            human_pos=humans_seq("human_pos"), human_radius=humans_seq("human_radius"),
-            visible=humans_seq("visible").astype(bool), obs_human_pos=obs_pos,
-            obs_mask=humans_seq("obs_mask").astype(bool), pred_pos=pred,
-            reward=np.asarray(outs["reward"][:steps, b], np.float64),
-            terms={f.name: np.asarray(getattr(outs["terms"], f.name)[:steps, b], np.float64)
-                   for f in dataclasses.fields(outs["terms"])},
-            outcomes=np.asarray(outs["outcome"][:steps, b]),
-            dt=float(params.dt), robot_radius=float(params.robot_radius), sensor_range=float(params.sensor_range),
-            d_disc=float(params.reward.d_disc), goal_tolerance=float(params.goal_tolerance), max_steps=n_steps,
-            robot_heading=np.asarray(seq("robot_heading"), np.float64), obstacles=layout,
-            lidar=np.asarray(seq("lidar"), np.float64) if "lidar" in first else None,
-            obstacle_dist=np.asarray(seq("obstacle_dist"), np.float64) if "obstacle_dist" in first else None,
-            occlusion=occlusion,
-        ))
+        episodes.append(
+            Episode(
+                label=label,
+                index=b,
+                robot_pos=robot_pos,
+                robot_vel=seq("robot_vel"),
+                goal=np.asarray(first["goal"][b]),
+                human_pos=humans_seq("human_pos"),
+                human_radius=humans_seq("human_radius"),
+                visible=humans_seq("visible").astype(bool),
+                obs_human_pos=obs_pos,
+                obs_mask=humans_seq("obs_mask").astype(bool),
+                pred_pos=pred,
+                reward=np.asarray(outs["reward"][:steps, b], np.float64),
+                terms={
+                    f.name: np.asarray(getattr(outs["terms"], f.name)[:steps, b], np.float64)
+                    for f in dataclasses.fields(outs["terms"])
+                },
+                outcomes=np.asarray(outs["outcome"][:steps, b]),
+                dt=float(params.dt),
+                robot_radius=float(params.robot_radius),
+                sensor_range=float(params.sensor_range),
+                d_disc=float(params.reward.d_disc),
+                goal_tolerance=float(params.goal_tolerance),
+                max_steps=n_steps,
+                robot_heading=np.asarray(seq("robot_heading"), np.float64),
+                obstacles=layout,
+                lidar=np.asarray(seq("lidar"), np.float64) if "lidar" in first else None,
+                obstacle_dist=np.asarray(seq("obstacle_dist"), np.float64) if "obstacle_dist" in first else None,
+                occlusion=occlusion,
+            )
+        )
     return episodes
 
 

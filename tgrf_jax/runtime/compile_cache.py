@@ -47,8 +47,11 @@ def enable() -> pathlib.Path | None:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        print(f"tgrf-jax: warning: compilation cache off, cannot create {path} ({e}); set {ENV_VAR} to a "
-              f"writable directory or to 'off'", file=sys.stderr)
+        print(
+            f"tgrf-jax: warning: compilation cache off, cannot create {path} ({e}); set {ENV_VAR} to a "
+            f"writable directory or to 'off'",
+            file=sys.stderr,
+        )
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)  # needs `filelock`, a dependency

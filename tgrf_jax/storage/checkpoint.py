@@ -62,8 +62,9 @@ def _key_name(entry) -> str:
 
 def _leaves(tree) -> list[tuple[str, object]]:
     """(path, leaf) pairs with paths as 'a/b/c', the same for a dataclass field and the dict key orbax stores."""
-    return [("/".join(_key_name(k) for k in path), leaf)
-            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]]
+    return [
+        ("/".join(_key_name(k) for k in path), leaf) for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]
+    ]
 
 
 def tree_digest(tree) -> str:
@@ -97,9 +98,10 @@ def _is_closed_loop_callback(unraisable) -> bool:
     if not (isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"):
         return False
     frames = traceback.extract_tb(unraisable.exc_traceback) if unraisable.exc_traceback else []
-    return any(f.name == "call_soon_threadsafe" and f.filename.endswith(("asyncio/base_events.py",
-                                                                           "asyncio\\base_events.py"))
-               for f in frames)
+    return any(
+        f.name == "call_soon_threadsafe" and f.filename.endswith(("asyncio/base_events.py", "asyncio\\base_events.py"))
+        for f in frames
+    )
 
 
 def _mute_closed_loop_callbacks() -> None:
@@ -112,6 +114,7 @@ def _mute_closed_loop_callbacks() -> None:
 
 def _muting(previous):
     """`previous`, an unraisable-exception hook, without the `_is_closed_loop_callback` noise."""
+
     def hook(unraisable):
         if not _is_closed_loop_callback(unraisable):
             previous(unraisable)
@@ -166,12 +169,12 @@ class Checkpointer:
         self.directory = pathlib.Path(directory).resolve()
         if not create and not self.directory.is_dir():
             raise CheckpointError(f"checkpoint directory {str(self.directory)!r} does not exist")
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, enable_async_checkpointing=False,
-                                               cleanup_tmp_directories=create)
+        options = ocp.CheckpointManagerOptions(
+            max_to_keep=keep, create=create, enable_async_checkpointing=False, cleanup_tmp_directories=create
+        )
         # named items: a directory may hold steps with and without a digest (a run resumed across versions)
         with _quiet_orbax():
-            self._manager = ocp.CheckpointManager(self.directory, options=options,
-                                                  item_names=(STATE_ITEM, DIGEST_ITEM))
+            self._manager = ocp.CheckpointManager(self.directory, options=options, item_names=(STATE_ITEM, DIGEST_ITEM))
 
     def all_steps(self) -> list[int]:
         with _quiet_orbax():
@@ -187,12 +190,12 @@ class Checkpointer:
 
     def save(self, step: int, state) -> pathlib.Path:
         state = jax.device_get(state)
-        storable = jax.tree_util.tree_map(
-            lambda x: np.zeros(1, np.asarray(x).dtype) if 0 in _shape(x) else x, state)
+        storable = jax.tree_util.tree_map(lambda x: np.zeros(1, np.asarray(x).dtype) if 0 in _shape(x) else x, state)
         chunking = jax.tree_util.tree_map(lambda _: ocp.SaveArgs(chunk_byte_size=DATA_FILE_BYTES // 2), storable)
         state_args = ocp.args.PyTreeSave(storable, save_args=chunking, ocdbt_target_data_file_size=DATA_FILE_BYTES)
-        args = ocp.args.Composite(**{STATE_ITEM: state_args,
-                                     DIGEST_ITEM: ocp.args.JsonSave({"sha256": tree_digest(state)})})
+        args = ocp.args.Composite(
+            **{STATE_ITEM: state_args, DIGEST_ITEM: ocp.args.JsonSave({"sha256": tree_digest(state)})}
+        )
         with _without_small_chunk_warning():
             self._manager.save(int(step), args=args, force=True)
         self._manager.wait_until_finished()
@@ -224,10 +227,10 @@ class Checkpointer:
             return self._read(template, step)
         except _Damaged as e:
             intact = tuple(s for s in steps if s < step and self._intact(template, s))
-            earlier = (f"intact earlier steps: {', '.join(map(str, intact))}" if intact
-                       else "no earlier step is intact")
-            raise CheckpointError(f"checkpoint {str(path)!r} (step {step}) is damaged: {e}; {earlier}",
-                                  step=step, intact=intact) from None
+            earlier = f"intact earlier steps: {', '.join(map(str, intact))}" if intact else "no earlier step is intact"
+            raise CheckpointError(
+                f"checkpoint {str(path)!r} (step {step}) is damaged: {e}; {earlier}", step=step, intact=intact
+            ) from None
 
     def _intact(self, template, step: int) -> bool:
         try:
@@ -256,28 +259,42 @@ class Checkpointer:
 
         groups = sorted({p.split("/")[0] for p in set(have) | set(want) if have.get(p) != want.get(p)})
         held = [f"{g}: {values(have, g):,} values in the checkpoint, {values(want, g):,} here" for g in groups]
-        examples = [f"{p} {have.get(p, 'absent')} in the checkpoint, {want.get(p, 'absent')} here"
-                    for p in dict.fromkeys([*want, *have]) if have.get(p) != want.get(p)][:2]
-        raise CheckpointError(f"checkpoint {str(self.path(step))!r} does not fit this config: "
-                              f"{'; '.join(held)} (e.g. {'; '.join(examples)})", step=step)
+        examples = [
+            f"{p} {have.get(p, 'absent')} in the checkpoint, {want.get(p, 'absent')} here"
+            for p in dict.fromkeys([*want, *have])
+            if have.get(p) != want.get(p)
+        ][:2]
+        raise CheckpointError(
+            f"checkpoint {str(self.path(step))!r} does not fit this config: "
+            f"{'; '.join(held)} (e.g. {'; '.join(examples)})",
+            step=step,
+        )
 
     def _read(self, template, step: int):
         path = self.path(step)
         abstract = jax.tree_util.tree_map(
-            lambda x: jax.ShapeDtypeStruct(_stored_shape(x), x.dtype) if hasattr(x, "shape") else x, template)
+            lambda x: jax.ShapeDtypeStruct(_stored_shape(x), x.dtype) if hasattr(x, "shape") else x, template
+        )
         if not (path / DIGEST_ITEM).is_dir():
             raise _Damaged(f"its checksum ({DIGEST_ITEM}/) is missing, so its content cannot be verified")
-        as_numpy = jax.tree_util.tree_map(lambda x: ocp.RestoreArgs(restore_type=np.ndarray, dtype=x.dtype) if isinstance(x, jax.ShapeDtypeStruct) else None,
-            abstract)
-        items = {STATE_ITEM: ocp.args.PyTreeRestore(abstract, restore_args=as_numpy),
-                 DIGEST_ITEM: ocp.args.JsonRestore()}
+        as_numpy = jax.tree_util.tree_map(
+            lambda x: (
+                ocp.RestoreArgs(restore_type=np.ndarray, dtype=x.dtype) if isinstance(x, jax.ShapeDtypeStruct) else None
+            ),
+            abstract,
+        )
+        items = {
+            STATE_ITEM: ocp.args.PyTreeRestore(abstract, restore_args=as_numpy),
+            DIGEST_ITEM: ocp.args.JsonRestore(),
+        }
         with _quiet_orbax():
             try:
                 out = self._manager.restore(step, args=ocp.args.Composite(**items))
             except Exception as e:  # orbax / tensorstore raise many types for damaged files
                 raise _Damaged(f"it cannot be read ({_reason(e)})") from None
         state = jax.tree_util.tree_map(
-            lambda x, t: np.zeros(_shape(t), np.asarray(x).dtype) if 0 in _shape(t) else x, out[STATE_ITEM], template)
+            lambda x, t: np.zeros(_shape(t), np.asarray(x).dtype) if 0 in _shape(t) else x, out[STATE_ITEM], template
+        )
         digest = out[DIGEST_ITEM]
         if not isinstance(digest, dict) or digest.get("sha256") != tree_digest(state):
             raise _Damaged("its content does not match the checksum written with it")

@@ -35,8 +35,10 @@ def exclusive(directory, *, create: bool = True):
             holder = (directory / OWNER_FILE).read_text().strip() or "unknown"
         except OSError:
             holder = "unknown"
-        raise ConfigError(f"{str(directory)!r} is being written by another process (pid {holder}); wait for it "
-                          "to finish or stop it first") from None
+        raise ConfigError(
+            f"{str(directory)!r} is being written by another process (pid {holder}); wait for it "
+            "to finish or stop it first"
+        ) from None
     try:
         (directory / OWNER_FILE).write_text(f"{os.getpid()}\n")
         yield directory

@@ -25,7 +25,21 @@ from tgrf_jax.sweep.report import (
 from tgrf_jax.sweep.run import SweepResult, default_sweep_dir, run_sweep
 
 __all__ = [
-    "GridAxis", "RunSpec", "SweepBatch", "SweepProgram", "SweepResult", "SweepSpec", "default_sweep_dir",
-    "format_summary_markdown", "get_program", "griddable_fields", "load_sweep", "parse_grid", "parse_seeds",
-    "plot_sweep", "run_sweep", "training_tail", "write_results",
+    "GridAxis",
+    "RunSpec",
+    "SweepBatch",
+    "SweepProgram",
+    "SweepResult",
+    "SweepSpec",
+    "default_sweep_dir",
+    "format_summary_markdown",
+    "get_program",
+    "griddable_fields",
+    "load_sweep",
+    "parse_grid",
+    "parse_seeds",
+    "plot_sweep",
+    "run_sweep",
+    "training_tail",
+    "write_results",
 ]

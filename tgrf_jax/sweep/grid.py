@@ -30,7 +30,6 @@ class GridAxis:
         return self.name.split(".", 1)[1]
 
 
-
 def _with_values(base: dict, values: dict) -> dict:
     for dotted, value in values.items():
         base = set_dotted(base, dotted, value)
@@ -49,15 +48,18 @@ def parse_grid(items: list[str], base: dict | None = None) -> tuple[GridAxis, ..
         name, raw = item.split("=", 1)
         name = name.strip()
         if name == "run.seed":
-            raise ConfigError(f"--grid {item!r}: seeds are not a grid axis; give them with --seeds N (run.seed, "
-                              "run.seed + 1, ...) or --seeds S1,S2,...")
+            raise ConfigError(
+                f"--grid {item!r}: seeds are not a grid axis; give them with --seeds N (run.seed, "
+                "run.seed + 1, ...) or --seeds S1,S2,..."
+            )
         if name not in griddable:
             listing = ", ".join(griddable)
             if name in known:
                 raise ConfigError(
                     f"--grid {name}: cannot be gridded: it is a static setting (array shapes or code paths), so runs "
                     f"with different values cannot share one compiled program; run one sweep per value instead. "
-                    f"Griddable (traced) fields: {listing}")
+                    f"Griddable (traced) fields: {listing}"
+                )
             close = difflib.get_close_matches(name, known, n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise ConfigError(f"--grid {name}: unknown config key {name!r}{hint}; griddable fields: {listing}")
@@ -97,8 +99,7 @@ def parse_seeds(text: str | int | None, base_seed: int) -> tuple[int, ...]:
     except ValueError:
         numbers = ()
     if not numbers:
-        raise ConfigError(f"--seeds {text!r} must be a count (e.g. 3) or a comma-separated list of seeds "
-                          f"(e.g. 0,5,7)")
+        raise ConfigError(f"--seeds {text!r} must be a count (e.g. 3) or a comma-separated list of seeds (e.g. 0,5,7)")
     if "," in text:
         seeds = numbers
     else:
@@ -154,8 +155,14 @@ class SweepSpec:
     layout: str = "batched"  # how the runs share the devices: one of LAYOUTS
 
     @classmethod
-    def create(cls, config_path=None, grid: list[str] = (), seeds: str | int | None = None,
-               overrides: list[str] = (), layout: str = "batched") -> "SweepSpec":
+    def create(
+        cls,
+        config_path=None,
+        grid: list[str] = (),
+        seeds: str | int | None = None,
+        overrides: list[str] = (),
+        layout: str = "batched",
+    ) -> SweepSpec:
         check_layout(layout)
         data = load_yaml(config_path) if config_path else {}
         base = TrainConfig.from_dict(apply_overrides(data, list(overrides))).to_dict()
@@ -172,8 +179,9 @@ class SweepSpec:
         return TrainConfig.from_dict(self.base)
 
     def points(self) -> list[dict]:
-        return [dict(zip([a.name for a in self.axes], combo)) for combo in
-                itertools.product(*[a.values for a in self.axes])]
+        return [
+            dict(zip([a.name for a in self.axes], combo)) for combo in itertools.product(*[a.values for a in self.axes])
+        ]
 
     def point_label(self, values: dict) -> str:
         return ", ".join(f"{k.split('.', 1)[1]}={_fmt_value(v)}" for k, v in values.items()) or "base"
@@ -207,7 +215,7 @@ class SweepSpec:
         }
 
     @classmethod
-    def from_dict(cls, data: dict) -> "SweepSpec":
+    def from_dict(cls, data: dict) -> SweepSpec:
         try:
             base = TrainConfig.from_dict(data["base"]).to_dict()
             axes = tuple(GridAxis(k, tuple(v)) for k, v in (data.get("grid") or {}).items())
@@ -219,8 +227,9 @@ class SweepSpec:
 
     def describe(self) -> str:
         runs = self.runs()
-        lines = [f"{len(self.points())} grid point(s) x {len(self.seeds)} seed(s) = {len(runs)} runs, "
-                 f"{self.layout} layout"]
+        lines = [
+            f"{len(self.points())} grid point(s) x {len(self.seeds)} seed(s) = {len(runs)} runs, {self.layout} layout"
+        ]
         for a in self.axes:
             lines.append(f"  {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")
         lines.append(f"  seeds: {', '.join(map(str, self.seeds))}")
@@ -242,6 +251,8 @@ def load_sweep(sweep_dir) -> SweepSpec:
     names = [r.name for r in spec.runs()]
     if not isinstance(recorded, list) or [r.get("name") if isinstance(r, dict) else r for r in recorded] != names:
         # its checkpoints, run directories and results belong to the runs it was written with
-        raise ConfigError(f"{str(path)!r} was edited: its grid and seeds give {len(names)} runs ({names[0]}, ...) "
-                          f"that are not the runs it records; restore it, or start a new sweep with --out")
+        raise ConfigError(
+            f"{str(path)!r} was edited: its grid and seeds give {len(names)} runs ({names[0]}, ...) "
+            f"that are not the runs it records; restore it, or start a new sweep with --out"
+        )
     return spec

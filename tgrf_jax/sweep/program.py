@@ -53,6 +53,7 @@ def _place(tree, sharding):
 
 def _pad(tree, g_pad: int):
     """Pad the leading run axis to g_pad with copies of the last run."""
+
     def one(x):
         x = np.asarray(x)
         if x.shape[0] == g_pad:
@@ -202,16 +203,21 @@ def evaluate_runs(program: SweepProgram, runs, params, g_pad: int, episodes: int
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.evaluate import summarize
 
-    envs = [CrowdNavEnv(dataclasses.replace(r.config.env, track_future_intrusion=True), r.config.reward)
-            for r in runs]
+    envs = [CrowdNavEnv(dataclasses.replace(r.config.env, track_future_intrusion=True), r.config.reward) for r in runs]
     env_params = _place(_pad(_stack([e.default_params for e in envs]), g_pad), program.sharding)
     key = jax.random.fold_in(jax.random.key(seed), 0)  # `evaluate` with one batch of all episodes
     stats = _host(program.eval_stats(params, env_params, key, episodes))
     out = []
     for i, r in enumerate(runs):
         res = summarize(_take(stats, i))
-        out.append({"env": repr(CrowdNavEnv(r.config.env, r.config.reward)), "episodes": episodes, "seed": seed,
-                    "results": {"learned": res.to_dict()}})
+        out.append(
+            {
+                "env": repr(CrowdNavEnv(r.config.env, r.config.reward)),
+                "episodes": episodes,
+                "seed": seed,
+                "results": {"learned": res.to_dict()},
+            }
+        )
     return out
 
 
@@ -226,8 +232,10 @@ def _run_inputs(runs):
     struct0 = jax.tree_util.tree_structure(hps[0])
     for r, h, s in zip(runs, hps, shapes):
         if jax.tree_util.tree_structure(h) != struct0 or s != shapes[0]:
-            raise ConfigError(f"run {r.name}: its hyper-parameters have another structure than run "
-                              f"{runs[0].name}'s; it cannot share the compiled program")
+            raise ConfigError(
+                f"run {r.name}: its hyper-parameters have another structure than run "
+                f"{runs[0].name}'s; it cannot share the compiled program"
+            )
     hparams = _stack(hps)
     check_hparams(hparams)  # each run's concrete values, as tgrf-train's init checks them
     return hparams, _stack([jax.random.PRNGKey(r.config.run.seed) for r in runs])
@@ -243,8 +251,9 @@ def _restore_stacked(checkpointer, trainer, keys, hparams, step: int):
     host_state = _host(checkpointer.restore(template, step))
     updates = sorted(set(np.asarray(host_state.update).tolist()))
     if len(updates) != 1:
-        raise CheckpointError(f"checkpoint {str(checkpointer.directory / str(step))!r} holds runs at "
-                              f"different updates {updates}")
+        raise CheckpointError(
+            f"checkpoint {str(checkpointer.directory / str(step))!r} holds runs at different updates {updates}"
+        )
     return host_state, updates[0]
 
 
@@ -294,10 +303,12 @@ class SweepBatch:
         c, p = self.config, self.config.ppo
         n_params = self.program.trainer.net.num_params(_take(_host(state.params), 0))
         pad = f", padded to {self.g_pad}" if self.g_pad != self.num_runs else ""
-        return (f"{self.num_runs} runs{pad} on {self.num_devices} {jax.devices()[0].platform} device(s), "
-                f"{self.g_pad // self.num_devices} run(s) per device | {self.program.trainer.env} | "
-                f"{c.network.name}/{c.network.size} ({n_params:,} params) | {p.num_envs} envs x {p.num_steps} "
-                f"steps, {self.num_updates} updates = {self.num_updates * p.batch_size:,} env steps per run")
+        return (
+            f"{self.num_runs} runs{pad} on {self.num_devices} {jax.devices()[0].platform} device(s), "
+            f"{self.g_pad // self.num_devices} run(s) per device | {self.program.trainer.env} | "
+            f"{c.network.name}/{c.network.size} ({n_params:,} params) | {p.num_envs} envs x {p.num_steps} "
+            f"steps, {self.num_updates} updates = {self.num_updates * p.batch_size:,} env steps per run"
+        )
 
 
 class SequentialBatch:

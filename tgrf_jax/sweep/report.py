@@ -23,8 +23,18 @@ CURVES_FILE = "learning_curves.png"
 RUNS_DIR = "runs"
 
 # Metrics of the summary table: final evaluation (docs/reference.md, "Metrics") and the end of training.
-EVAL_METRICS = ("success_rate", "collision_rate", "timeout_rate", "nav_time", "path_length", "itr_future",
-                "itr_disc", "intrusion_dist_future", "intrusion_dist_disc", "mean_return")
+EVAL_METRICS = (
+    "success_rate",
+    "collision_rate",
+    "timeout_rate",
+    "nav_time",
+    "path_length",
+    "itr_future",
+    "itr_disc",
+    "intrusion_dist_future",
+    "intrusion_dist_disc",
+    "mean_return",
+)
 TRAIN_METRICS = ("train_return", "train_success_rate")
 TRAIN_TAIL = 0.1  # training metrics: episode-weighted over the chunks of the last 10% of updates
 
@@ -52,8 +62,10 @@ def training_tail(rows: list[dict], total_updates: int) -> dict:
     ret = np.array([_float(r["episode_return"]) for r in tail])
     sr = np.array([_float(r["success_rate"]) for r in tail])
     w = eps / eps.sum()
-    return {"train_return": float(np.nansum(w * np.where(eps > 0, ret, 0.0))),
-            "train_success_rate": float(np.nansum(w * np.where(eps > 0, sr, 0.0)))}
+    return {
+        "train_return": float(np.nansum(w * np.where(eps > 0, ret, 0.0))),
+        "train_success_rate": float(np.nansum(w * np.where(eps > 0, sr, 0.0))),
+    }
 
 
 def write_results(sweep_dir, spec: SweepSpec, evals: list | None) -> list[dict]:
@@ -72,8 +84,12 @@ def write_results(sweep_dir, spec: SweepSpec, evals: list | None) -> list[dict]:
             row["eval_episodes"] = res["n_episodes"]
         per_run.append(row)
     metric_names = (list(EVAL_METRICS) if evals is not None else []) + list(TRAIN_METRICS)
-    run_fields = ["run", "point", "seed"] + [a.name for a in spec.axes] + metric_names + (
-        ["eval_episodes"] if evals is not None else [])
+    run_fields = (
+        ["run", "point", "seed"]
+        + [a.name for a in spec.axes]
+        + metric_names
+        + (["eval_episodes"] if evals is not None else [])
+    )
     with open(sweep_dir / EVALS_FILE, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=run_fields)
         w.writeheader()
@@ -89,8 +105,12 @@ def write_results(sweep_dir, spec: SweepSpec, evals: list | None) -> list[dict]:
             srow[f"{m}_mean"] = float(np.mean(x)) if x.size else float("nan")
             srow[f"{m}_std"] = float(np.std(x, ddof=1)) if x.size > 1 else float("nan")
         summary.append(srow)
-    fields = ["point"] + [a.name for a in spec.axes] + ["seeds"] + [f"{m}_{s}" for m in metric_names
-                                                                   for s in ("mean", "std")]
+    fields = (
+        ["point"]
+        + [a.name for a in spec.axes]
+        + ["seeds"]
+        + [f"{m}_{s}" for m in metric_names for s in ("mean", "std")]
+    )
     with open(sweep_dir / SUMMARY_CSV, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields)
         w.writeheader()
@@ -100,11 +120,18 @@ def write_results(sweep_dir, spec: SweepSpec, evals: list | None) -> list[dict]:
 
 
 _LABELS = {
-    "success_rate": ("SR", "{:.1%}"), "collision_rate": ("collision", "{:.1%}"), "timeout_rate": ("timeout", "{:.1%}"),
-    "nav_time": ("NT (s)", "{:.2f}"), "path_length": ("PL (m)", "{:.2f}"), "itr_future": ("ITR future (%)", "{:.2f}"),
-    "itr_disc": ("ITR disc (%)", "{:.2f}"), "intrusion_dist_future": ("dist ITR future (m)", "{:.3f}"),
-    "intrusion_dist_disc": ("dist ITR disc (m)", "{:.3f}"), "mean_return": ("return", "{:.2f}"),
-    "train_return": ("train return", "{:.2f}"), "train_success_rate": ("train SR", "{:.1%}"),
+    "success_rate": ("SR", "{:.1%}"),
+    "collision_rate": ("collision", "{:.1%}"),
+    "timeout_rate": ("timeout", "{:.1%}"),
+    "nav_time": ("NT (s)", "{:.2f}"),
+    "path_length": ("PL (m)", "{:.2f}"),
+    "itr_future": ("ITR future (%)", "{:.2f}"),
+    "itr_disc": ("ITR disc (%)", "{:.2f}"),
+    "intrusion_dist_future": ("dist ITR future (m)", "{:.3f}"),
+    "intrusion_dist_disc": ("dist ITR disc (m)", "{:.3f}"),
+    "mean_return": ("return", "{:.2f}"),
+    "train_return": ("train return", "{:.2f}"),
+    "train_success_rate": ("train SR", "{:.1%}"),
 }
 
 
@@ -156,15 +183,24 @@ def plot_sweep(sweep_dir, spec: SweepSpec, summary: list[dict]) -> list[pathlib.
         for r in spec.runs():
             label = ", ".join(f"{k.split('.', 1)[1]}={_fmt_value(v)}" for k, v in r.values.items()) or "all runs"
             groups.setdefault(label, {})[r.name] = [row for row in curves if row["run"] == r.name]
-        out.append(plot_curves({k: list(v.values()) for k, v in groups.items()}, sweep_dir / "eval_curves.png",
-                               title="test episodes during training (mean over seeds, band: ± std)"))
+        out.append(
+            plot_curves(
+                {k: list(v.values()) for k, v in groups.items()},
+                sweep_dir / "eval_curves.png",
+                title="test episodes during training (mean over seeds, band: ± std)",
+            )
+        )
     return out
 
 
 def _title(m: str) -> str:
-    return {"success_rate": "success rate (eval)", "itr_disc": "ITR disc (%) (eval)",
-            "itr_future": "ITR future (%) (eval)", "train_success_rate": "success rate (training, end)",
-            "train_return": "return (training, end)"}.get(m, m)
+    return {
+        "success_rate": "success rate (eval)",
+        "itr_disc": "ITR disc (%) (eval)",
+        "itr_future": "ITR future (%) (eval)",
+        "train_success_rate": "success rate (training, end)",
+        "train_return": "return (training, end)",
+    }.get(m, m)
 
 
 def plot_heatmap(path, spec: SweepSpec, summary, ax_y: GridAxis, ax_x: GridAxis, metrics) -> pathlib.Path:
@@ -186,8 +222,15 @@ def plot_heatmap(path, spec: SweepSpec, summary, ax_y: GridAxis, ax_x: GridAxis,
                     if np.isfinite(std[i, j]):
                         s += "\n±" + (f"{std[i, j]:.0%}" if pct else f"{std[i, j]:.2f}")
                     r, g, b, _ = im.cmap(im.norm(mean[i, j]))
-                    ax.text(j, i, s, ha="center", va="center", fontsize=8,
-                            color="k" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "w")
+                    ax.text(
+                        j,
+                        i,
+                        s,
+                        ha="center",
+                        va="center",
+                        fontsize=8,
+                        color="k" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "w",
+                    )
         ax.set_xticks(range(len(ax_x.values)), [_fmt_value(v) for v in ax_x.values])
         ax.set_yticks(range(len(ax_y.values)), [_fmt_value(v) for v in ax_y.values])
         ax.set(xlabel=ax_x.name, ylabel=ax_y.name, title=_title(m))
@@ -244,12 +287,17 @@ def plot_learning_curves(sweep_dir, spec: SweepSpec) -> pathlib.Path:
             if y.shape[0] > 1:
                 ax.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2, linewidth=0)
     ax_ret.set(xlabel="env steps per run", ylabel="mean episode return", title="return (training episodes)")
-    ax_sr.set(xlabel="env steps per run", ylabel="success rate", ylim=(-0.02, 1.02),
-              title="success rate (training episodes)")
+    ax_sr.set(
+        xlabel="env steps per run", ylabel="success rate", ylim=(-0.02, 1.02), title="success rate (training episodes)"
+    )
     for ax in (ax_ret, ax_sr):
         ax.grid(alpha=0.3)
-    ax_sr.legend(loc="center left", bbox_to_anchor=(1.02, 0.5), fontsize=7 if len(points) > 10 else 8,
-                 ncol=1 if len(points) <= 20 else 2)
+    ax_sr.legend(
+        loc="center left",
+        bbox_to_anchor=(1.02, 0.5),
+        fontsize=7 if len(points) > 10 else 8,
+        ncol=1 if len(points) <= 20 else 2,
+    )
     fig.suptitle(f"{len(points)} grid point(s): mean over {len(spec.seeds)} seed(s), band ± std")
     fig.tight_layout()
     path = sweep_dir / CURVES_FILE

@@ -22,7 +22,8 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import pathlib
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import yaml
 
@@ -132,16 +133,36 @@ def run_sweep(
         load_sweep(sweep_dir)  # a clear error for a directory that holds no sweep
     elif (sweep_dir / SWEEP_FILE).exists():
         raise ConfigError(f"sweep directory {str(sweep_dir)!r} already holds a sweep; use --resume or another --out")
-    args = (spec, sweep_dir, resume, from_step, log, stop_after_updates, devices, num_devices, export_checkpoints,
-            layout)
+    args = (
+        spec,
+        sweep_dir,
+        resume,
+        from_step,
+        log,
+        stop_after_updates,
+        devices,
+        num_devices,
+        export_checkpoints,
+        layout,
+    )
     if jax.process_index() != 0:
         return _run_sweep(*args)
     with exclusive(sweep_dir):
         return _run_sweep(*args)
 
 
-def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after_updates, devices, num_devices,
-               export_checkpoints, layout) -> SweepResult:
+def _run_sweep(
+    spec,
+    sweep_dir: pathlib.Path,
+    resume,
+    from_step,
+    log,
+    stop_after_updates,
+    devices,
+    num_devices,
+    export_checkpoints,
+    layout,
+) -> SweepResult:
     import jax
 
     main = jax.process_index() == 0
@@ -177,9 +198,11 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after
         missing = [(r, d) for r, d in zip(runs, run_dirs) if not (d / CONFIG_FILE).is_file()]
         started = any(p.name.isdigit() and p.name != "0" for p in ckpt_dir.iterdir()) if ckpt_dir.is_dir() else False
         if missing and started:  # its metrics.csv and eval.json cannot be rebuilt from the sweep's checkpoints
-            raise ConfigError(f"run directory {str(missing[0][1])!r} of the sweep is missing or has no "
-                              f"{CONFIG_FILE}{f' (and {len(missing) - 1} more)' if len(missing) > 1 else ''}; "
-                              "restore it, or start the sweep again with --out")
+            raise ConfigError(
+                f"run directory {str(missing[0][1])!r} of the sweep is missing or has no "
+                f"{CONFIG_FILE}{f' (and {len(missing) - 1} more)' if len(missing) > 1 else ''}; "
+                "restore it, or start the sweep again with --out"
+            )
         for r, d in missing:  # a sweep killed while it created them
             d.mkdir(parents=True, exist_ok=True)
             write_atomic(d / CONFIG_FILE, r.config.to_yaml())
@@ -189,11 +212,15 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after
 
     say = LogFile(sweep_dir / LOG_FILE, log, enabled=main)
     if switched_from is not None:
-        say(f"layout switched from {switched_from} to {spec.layout} (recorded in {SWEEP_FILE}): from here the runs "
-            f"equal an unswitched resume up to float rounding, not bit for bit")
+        say(
+            f"layout switched from {switched_from} to {spec.layout} (recorded in {SWEEP_FILE}): from here the runs "
+            f"equal an unswitched resume up to float rounding, not bit for bit"
+        )
     program = (SequentialBatch if spec.layout == "sequential" else SweepBatch)(runs, devices)
     run_cfg = runs[0].config.run
-    ckpt = Checkpointer(ckpt_dir, keep=run_cfg.keep_checkpoints, create=True)  # a run stopped before its first checkpoint has none yet
+    ckpt = Checkpointer(
+        ckpt_dir, keep=run_cfg.keep_checkpoints, create=True
+    )  # a run stopped before its first checkpoint has none yet
     say(f"sweep of {len(runs)} runs ({len(spec.points())} grid points x {len(spec.seeds)} seeds)")
     for a in spec.axes:
         say(f"  grid {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")
@@ -203,38 +230,67 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after
     if main:  # process 0 writes the files
         long_fields = ["run", "point", "seed"] + [a.name for a in spec.axes] + list(CSV_FIELDS)
         columns = [dict(run=r.name, point=r.point, seed=r.seed, **r.values) for r in runs]
-        writers.append(CsvWriter(sweep_dir / METRICS_FILE, lambda m: [dict(row, **c) for row, c in
-                                                                       zip(m.runs, columns)], long_fields))
+        writers.append(
+            CsvWriter(
+                sweep_dir / METRICS_FILE, lambda m: [dict(row, **c) for row, c in zip(m.runs, columns)], long_fields
+            )
+        )
         writers += [CsvWriter(d / METRICS_FILE, run_rows(i)) for i, d in enumerate(run_dirs)]
         writers.append(ProgressPrinter(say))
     curve_writers, state_fns = [], []
     if run_cfg.eval_every:
         if main:
             curve_fields = ["run", "point", "seed"] + [a.name for a in spec.axes] + list(CURVE_FIELDS)
-            curve_writers.append(CsvWriter(sweep_dir / CURVES_FILE, lambda rows: [dict(row, **c) for row, c in
-                                                                                zip(rows, columns)], curve_fields,
-                                           every_chunk=False))
-            curve_writers += [CsvWriter(d / EVAL_CURVE_CSV, lambda rows, i=i: rows[i:i + 1], CURVE_FIELDS,
-                                        every_chunk=False) for i, d in enumerate(run_dirs)]
-        state_fns.append(PeriodicEvaluation(program, run_cfg.eval_every, run_cfg.curve_episodes, run_cfg.eval_seed,
-                                            curve_writers, say))
+            curve_writers.append(
+                CsvWriter(
+                    sweep_dir / CURVES_FILE,
+                    lambda rows: [dict(row, **c) for row, c in zip(rows, columns)],
+                    curve_fields,
+                    every_chunk=False,
+                )
+            )
+            curve_writers += [
+                CsvWriter(d / EVAL_CURVE_CSV, lambda rows, i=i: rows[i : i + 1], CURVE_FIELDS, every_chunk=False)
+                for i, d in enumerate(run_dirs)
+            ]
+        state_fns.append(
+            PeriodicEvaluation(
+                program, run_cfg.eval_every, run_cfg.curve_episodes, run_cfg.eval_seed, curve_writers, say
+            )
+        )
     try:
-        out = train_runs(program, ckpt, run_cfg, resume=resume, from_step=from_step, progress_fns=writers,
-                         state_fns=state_fns, cut_every=[run_cfg.eval_every] if state_fns else [],
-                         run_dirs=run_dirs, write_evals=main, say=say, stop_after_updates=stop_after_updates)
+        out = train_runs(
+            program,
+            ckpt,
+            run_cfg,
+            resume=resume,
+            from_step=from_step,
+            progress_fns=writers,
+            state_fns=state_fns,
+            cut_every=[run_cfg.eval_every] if state_fns else [],
+            run_dirs=run_dirs,
+            write_evals=main,
+            say=say,
+            stop_after_updates=stop_after_updates,
+        )
     finally:
         for w in writers + curve_writers:
             getattr(w, "close", lambda: None)()
         ckpt.close()
 
     host_state = program.host_state(out.state)
-    result = SweepResult(sweep_dir, spec, host_state, out.updates, out.train_seconds, program.num_devices,
-                         out.evals, out.compiled_chunks)
+    result = SweepResult(
+        sweep_dir, spec, host_state, out.updates, out.train_seconds, program.num_devices, out.evals, out.compiled_chunks
+    )
     if out.updates == program.num_updates:
         if export_checkpoints:  # so that tgrf-eval / tgrf-render work on runs/<name>
             for i, d in enumerate(run_dirs):
-                export_checkpoint(d / CHECKPOINT_DIR, out.updates, jax.tree_util.tree_map(lambda x: x[i], host_state),
-                                  run_cfg.keep_checkpoints)
+                export_checkpoint(
+                    d / CHECKPOINT_DIR,
+                    out.updates,
+                    jax.tree_util.tree_map(lambda x: x[i], host_state),
+                    run_cfg.keep_checkpoints,
+                )
         if main:
             rows = write_results(sweep_dir, spec, out.evals)
             say(format_summary_markdown(spec, rows))
@@ -243,8 +299,10 @@ def _run_sweep(spec, sweep_dir: pathlib.Path, resume, from_step, log, stop_after
             except Exception as e:  # a plotting failure must not lose a finished sweep
                 say(f"warning: could not plot: {type(e).__name__}: {e}")
         G, batch, trained = len(runs), program.batch_size, out.updates - out.start
-        say(f"done: {G} runs x {out.updates} updates = {G * out.updates * batch:,} env steps; this process trained "
+        say(
+            f"done: {G} runs x {out.updates} updates = {G * out.updates * batch:,} env steps; this process trained "
             f"{trained} updates in {out.train_seconds:.1f} s ({G * trained * batch / max(out.train_seconds, 1e-9):,.0f}"
-            f" steps/s over all runs, compilation excluded); sweep dir {sweep_dir}")
+            f" steps/s over all runs, compilation excluded); sweep dir {sweep_dir}"
+        )
     say.close()
     return result

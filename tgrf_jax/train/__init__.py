@@ -13,6 +13,13 @@ from tgrf_jax.train.ppo import (
 )
 
 __all__ = [
-    "HParams", "Train", "TrainState", "Trainer", "Transition", "compute_gae", "hparams_from_config", "make_train",
+    "HParams",
+    "Train",
+    "TrainState",
+    "Trainer",
+    "Transition",
+    "compute_gae",
+    "hparams_from_config",
+    "make_train",
     "ppo_loss",
 ]

@@ -13,23 +13,37 @@ from __future__ import annotations
 import csv
 import math
 import pathlib
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 EVAL_CURVE_CSV = "eval_curve.csv"
 EVAL_CURVE_PNG = "eval_curve.png"
-CURVE_METRICS = ("success_rate", "collision_rate", "timeout_rate", "nav_time", "path_length", "itr_future",
-                 "itr_disc", "mean_return")
+CURVE_METRICS = (
+    "success_rate",
+    "collision_rate",
+    "timeout_rate",
+    "nav_time",
+    "path_length",
+    "itr_future",
+    "itr_disc",
+    "mean_return",
+)
 CURVE_FIELDS = ("update", "env_steps", "episodes") + CURVE_METRICS
 # The four panels of the paper's Fig. 6.
-PANELS = (("success_rate", "SR", 100.0), ("nav_time", "NT (s)", 1.0), ("path_length", "PL (m)", 1.0),
-          ("itr_future", "ITR (%)", 1.0))
+PANELS = (
+    ("success_rate", "SR", 100.0),
+    ("nav_time", "NT (s)", 1.0),
+    ("path_length", "PL (m)", 1.0),
+    ("itr_future", "ITR (%)", 1.0),
+)
 
 
 class PeriodicEvaluation:
     """state_fn: evaluates every run at multiples of `every` updates and at `total`, handing writers the rows."""
 
-    def __init__(self, program, every: int, episodes: int, seed: int, writers: Sequence[Any],
-                 say: Callable[[str], None] = print):
+    def __init__(
+        self, program, every: int, episodes: int, seed: int, writers: Sequence[Any], say: Callable[[str], None] = print
+    ):
         self.program, self.every, self.episodes, self.seed = program, every, episodes, seed
         self.writers, self.say = list(writers), say
 
@@ -40,13 +54,22 @@ class PeriodicEvaluation:
         rows = []
         for payload in evals:
             res = payload["results"]["learned"]
-            rows.append({"update": update, "env_steps": update * self.program.batch_size, "episodes": self.episodes,
-                         **{k: (math.nan if res[k] is None else res[k]) for k in CURVE_METRICS}})
+            rows.append(
+                {
+                    "update": update,
+                    "env_steps": update * self.program.batch_size,
+                    "episodes": self.episodes,
+                    **{k: (math.nan if res[k] is None else res[k]) for k in CURVE_METRICS},
+                }
+            )
         for writer in self.writers:
             writer(update, rows)
         sr = [r["success_rate"] for r in rows]
-        self.say(f"test episodes at update {update}: success {min(sr):.2f}" +
-                 (f"-{max(sr):.2f} over {len(sr)} runs" if len(sr) > 1 else "") + f" ({self.episodes} episodes)")
+        self.say(
+            f"test episodes at update {update}: success {min(sr):.2f}"
+            + (f"-{max(sr):.2f} over {len(sr)} runs" if len(sr) > 1 else "")
+            + f" ({self.episodes} episodes)"
+        )
 
     def truncate(self, update: int) -> float:
         for writer in self.writers:
@@ -59,8 +82,10 @@ def read_curve(path) -> list[dict]:
     if not path.is_file():
         return []
     with open(path, newline="") as f:
-        return [{k: (float(v) if v not in ("", None) else math.nan) if k in CURVE_FIELDS else v
-                 for k, v in row.items()} for row in csv.DictReader(f)]
+        return [
+            {k: (float(v) if v not in ("", None) else math.nan) if k in CURVE_FIELDS else v for k, v in row.items()}
+            for row in csv.DictReader(f)
+        ]
 
 
 def plot_curves(groups: dict[str, list[list[dict]]], png_path, title: str = "") -> pathlib.Path:

@@ -17,7 +17,8 @@ import dataclasses
 import json
 import pathlib
 import time
-from typing import Any, Callable, Iterator, Protocol, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, Protocol
 
 import jax
 
@@ -99,8 +100,10 @@ def train_runs(
     start_time = time.perf_counter()
     steps = checkpointer.all_steps() if resume else []
     if from_step is not None and from_step not in steps:
-        raise CheckpointError(f"--from-step {from_step}: {str(checkpointer.directory)!r} holds no checkpoint of "
-                              f"update {from_step}; it holds: {', '.join(map(str, steps)) or 'none'}")
+        raise CheckpointError(
+            f"--from-step {from_step}: {str(checkpointer.directory)!r} holds no checkpoint of "
+            f"update {from_step}; it holds: {', '.join(map(str, steps)) or 'none'}"
+        )
     step = from_step if from_step is not None else (steps[-1] if steps else None)
     if resume and step is None:
         say("no checkpoint yet (the run stopped before its first one): starting from the beginning")
@@ -114,10 +117,13 @@ def train_runs(
             for run_dir in run_dirs if write_evals else ():
                 (pathlib.Path(run_dir) / EVAL_FILE).unlink(missing_ok=True)
         # the one place where files written after the checkpoint are cut back to it
-        wall_offset = max([fn.truncate(start) for fn in (*progress_fns, *state_fns) if hasattr(fn, "truncate")],
-                          default=0.0)
-        say(f"resumed at update {start}/{total} ({start * batch:,} env steps{' per run' if G > 1 else ''})"
-            + (": trained to the end already" if start == total else ""))
+        wall_offset = max(
+            [fn.truncate(start) for fn in (*progress_fns, *state_fns) if hasattr(fn, "truncate")], default=0.0
+        )
+        say(
+            f"resumed at update {start}/{total} ({start * batch:,} env steps{' per run' if G > 1 else ''})"
+            + (": trained to the end already" if start == total else "")
+        )
     else:
         state, start, wall_offset = program.init(), 0, 0.0
         checkpointer.save(0, program.host_state(state))
@@ -141,9 +147,14 @@ def train_runs(
             wall = wall_offset + time.perf_counter() - start_time
             row = lambda m, runs: csv_row(m, update, update * batch, wall, runs * n * batch / dt)  # noqa: E731
             metrics = ChunkMetrics(
-                update=update, total_updates=total, env_steps=update * batch, total_env_steps=total * batch,
+                update=update,
+                total_updates=total,
+                env_steps=update * batch,
+                total_env_steps=total * batch,
                 eta_s=(total - update) * train_seconds / (update - start),
-                runs=tuple(row(m, 1) for m in per_run), total=row(combine_runs(per_run), G))
+                runs=tuple(row(m, 1) for m in per_run),
+                total=row(combine_runs(per_run), G),
+            )
             for progress_fn in progress_fns:
                 progress_fn(update * batch, metrics)
             for state_fn in state_fns:
@@ -158,8 +169,10 @@ def train_runs(
     if update == total and run.eval_episodes > 0:
         result.evals = written_evals(run_dirs, total, run) if start == total else None
         if result.evals is None:
-            say(f"evaluating the final polic{'ies' if G > 1 else 'y'} on {run.eval_episodes} episodes"
-                f"{' each' if G > 1 else ''} ...")
+            say(
+                f"evaluating the final polic{'ies' if G > 1 else 'y'} on {run.eval_episodes} episodes"
+                f"{' each' if G > 1 else ''} ..."
+            )
             c0 = time.perf_counter()
             result.evals = program.evaluate(state, run.eval_episodes, run.eval_seed)
             say(f"  done in {time.perf_counter() - c0:.1f} s (compilation included)")
@@ -180,7 +193,10 @@ def written_evals(run_dirs: Sequence[pathlib.Path], total: int, run: RunConfig) 
         except (OSError, ValueError):
             return None
         if (payload.get("updates"), payload.get("episodes"), payload.get("seed")) != (
-                total, run.eval_episodes, run.eval_seed):
+            total,
+            run.eval_episodes,
+            run.eval_seed,
+        ):
             return None
         payloads.append(payload)
     return payloads

@@ -11,7 +11,9 @@ import pathlib
 
 def read_metrics(path) -> list[dict]:
     with open(path, newline="") as f:
-        return [{k: float(v) if v not in ("", None) else float("nan") for k, v in row.items()} for row in csv.DictReader(f)]
+        return [
+            {k: float(v) if v not in ("", None) else float("nan") for k, v in row.items()} for row in csv.DictReader(f)
+        ]
 
 
 def plot_learning_curve(csv_path, png_path, title: str = "") -> pathlib.Path:

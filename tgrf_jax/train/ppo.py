@@ -47,7 +47,10 @@ from tgrf_jax.train import shards
 from tgrf_jax.train.shards import SHARD_AXIS
 
 HParams = traced_pytree(
-    "HParams", PPOConfig, first=(("env", EnvParams),), module=__name__,
+    "HParams",
+    PPOConfig,
+    first=(("env", EnvParams),),
+    module=__name__,
     doc="""Numeric hyper-parameters, traced: `vmap(train, in_axes=(0, 0))` over seeds x grid points works.
 
     `env` (which holds the reward parameters) plus one float32 leaf per traced field of `PPOConfig`.""",
@@ -135,23 +138,34 @@ ENV_FIELDS = ("env_state", "obs", "carry", "resets", "ep_return")
 
 def map_fields(ts: TrainState, env_fn, shared_fn) -> TrainState:
     """A TrainState-shaped tree: `env_fn` applied to the leaves of the per-env fields, `shared_fn` to the rest."""
-    return ts.replace(**{
-        f.name: jax.tree_util.tree_map(env_fn if f.name in ENV_FIELDS else shared_fn, getattr(ts, f.name))
-        for f in dataclasses.fields(ts)
-    })
+    return ts.replace(
+        **{
+            f.name: jax.tree_util.tree_map(env_fn if f.name in ENV_FIELDS else shared_fn, getattr(ts, f.name))
+            for f in dataclasses.fields(ts)
+        }
+    )
 
 
 def field_prefix(env_value, shared_value) -> TrainState:
     """A TrainState prefix tree (one value per field), e.g. vmap axes or shardings."""
-    return TrainState(**{f.name: env_value if f.name in ENV_FIELDS else shared_value
-                         for f in dataclasses.fields(TrainState)})
+    return TrainState(
+        **{f.name: env_value if f.name in ENV_FIELDS else shared_value for f in dataclasses.fields(TrainState)}
+    )
 
 
 # Reduced per-update scalars. The episode fields are sums (over the episodes that ended in the update), so chunks
 # and runs add them up; the others are averaged.
 SUMMED_METRICS = ("episodes", "return_sum", "successes", "collisions", "timeouts")
 METRIC_NAMES = SUMMED_METRICS + (
-    "loss", "pg_loss", "vf_loss", "entropy", "approx_kl", "clip_frac", "grad_norm", "lr", "reward_mean",
+    "loss",
+    "pg_loss",
+    "vf_loss",
+    "entropy",
+    "approx_kl",
+    "clip_frac",
+    "grad_norm",
+    "lr",
+    "reward_mean",
 )
 
 
@@ -185,8 +199,17 @@ def compute_gae(rewards, values, dones, truncated, final_values, last_value, gam
     return adv, adv + values
 
 
-def ppo_loss(net: ActorCritic, params, carry0, batch: Transition, advantages, returns, hp: HParams,
-             clip_value: bool, value_stats: ReturnStats | None = None):
+def ppo_loss(
+    net: ActorCritic,
+    params,
+    carry0,
+    batch: Transition,
+    advantages,
+    returns,
+    hp: HParams,
+    clip_value: bool,
+    value_stats: ReturnStats | None = None,
+):
     """Clipped PPO loss of one minibatch of whole sequences (T, b), replayed from carry0 (b,).
 
     With `value_stats` the critic's output is a standardised value: targets and the rollout's values (stored in
@@ -209,7 +232,9 @@ def ppo_loss(net: ActorCritic, params, carry0, batch: Transition, advantages, re
     entropy = jnp.mean(pi.entropy())
     loss = pg_loss + hp.vf_coef * vf_loss - hp.ent_coef * entropy
     aux = dict(
-        pg_loss=pg_loss, vf_loss=vf_loss, entropy=entropy,
+        pg_loss=pg_loss,
+        vf_loss=vf_loss,
+        entropy=entropy,
         approx_kl=jnp.mean((ratio - 1.0) - jnp.log(ratio)),
         clip_frac=jnp.mean((jnp.abs(ratio - 1.0) > hp.clip_eps).astype(jnp.float32)),
     )
@@ -235,7 +260,9 @@ def make_optimizer(adam_eps: float):
     them like any other leaf of `HParams`."""
     return optax.inject_hyperparams(
         lambda learning_rate, max_grad_norm: optax.chain(
-            optax.clip_by_global_norm(max_grad_norm), optax.adam(learning_rate, eps=adam_eps)))
+            optax.clip_by_global_norm(max_grad_norm), optax.adam(learning_rate, eps=adam_eps)
+        )
+    )
 
 
 # Newer optax names the global norm optax.tree.norm and deprecates optax.global_norm; the oldest optax allowed
@@ -366,8 +393,10 @@ class Trainer:
 
     def optimizer_hparams(self, hp: HParams, update) -> dict:
         """The optimiser's injected hyper-parameters for update number `update` (traced)."""
-        return {"learning_rate": learning_rate(self.config.ppo, hp.lr, update, self.num_updates),
-                "max_grad_norm": hp.max_grad_norm}
+        return {
+            "learning_rate": learning_rate(self.config.ppo, hp.lr, update, self.num_updates),
+            "max_grad_norm": hp.max_grad_norm,
+        }
 
     # --------------------------------------------------------------------------------------------- rollout
     def rollout(self, ts: TrainState, key):
@@ -394,13 +423,13 @@ class Trainer:
             def final_values(_):
                 return to_reward_units(net.apply(ts.params, carry, info.final_obs, None)[2])
 
-            final_value = jax.lax.cond(jnp.any(truncated), final_values,
-                                       lambda _: jnp.zeros_like(value), None)
+            final_value = jax.lax.cond(jnp.any(truncated), final_values, lambda _: jnp.zeros_like(value), None)
             final_value = jnp.where(truncated, final_value, 0.0)
             ep_return = ep_return + reward
             outcome = info.outcome
             ep = dict(
-                episodes=jnp.sum(done), return_sum=jnp.sum(jnp.where(done, ep_return, 0.0)),
+                episodes=jnp.sum(done),
+                return_sum=jnp.sum(jnp.where(done, ep_return, 0.0)),
                 successes=jnp.sum(done & (outcome == SUCCESS)),
                 collisions=jnp.sum(done & ((outcome == COLLISION) | (outcome == OBSTACLE_COLLISION))),
                 timeouts=jnp.sum(done & (outcome == TIMEOUT)),
@@ -427,8 +456,9 @@ class Trainer:
         ts, traj, carry0, last_value, ep = self.rollout(ts, self.shard_key(k_roll))
 
         # --- advantages
-        adv, returns = compute_gae(traj.reward, traj.value, traj.done, traj.truncated, traj.final_value,
-                                   last_value, hp.gamma, hp.gae_lambda)
+        adv, returns = compute_gae(
+            traj.reward, traj.value, traj.done, traj.truncated, traj.final_value, last_value, hp.gamma, hp.gae_lambda
+        )
         if p.norm_adv:  # moments of the whole batch: all shards' advantages
             adv_mean = self._mean(adv)
             adv = (adv - adv_mean) / (jnp.sqrt(self._mean(jnp.square(adv - adv_mean))) + 1e-5)
@@ -453,16 +483,25 @@ class Trainer:
             split_t = lambda x: split_time_major(x, n_micro)  # noqa: E731
             split_c = lambda x: split_envs(x, n_micro)  # noqa: E731
             c0, batch, a, r = mb
-            slices = (jax.tree_util.tree_map(split_c, c0), jax.tree_util.tree_map(split_t, batch), split_t(a),
-                      split_t(r))
+            slices = (
+                jax.tree_util.tree_map(split_c, c0),
+                jax.tree_util.tree_map(split_t, batch),
+                split_t(a),
+                split_t(r),
+            )
 
             def accumulate(total, sl):
                 out = loss_grad(self.net, params, *sl, hp, p.clip_value, value_stats)
                 return jax.tree_util.tree_map(jnp.add, total, out), None
 
-            zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(
-                lambda: loss_grad(self.net, params, *jax.tree_util.tree_map(lambda x: x[0], slices), hp,
-                                  p.clip_value, value_stats)))
+            zeros = jax.tree_util.tree_map(
+                lambda s: jnp.zeros(s.shape, s.dtype),
+                jax.eval_shape(
+                    lambda: loss_grad(
+                        self.net, params, *jax.tree_util.tree_map(lambda x: x[0], slices), hp, p.clip_value, value_stats
+                    )
+                ),
+            )
             total, _ = jax.lax.scan(accumulate, zeros, slices)
             return jax.tree_util.tree_map(lambda x: x / n_micro, total)
 
@@ -492,8 +531,7 @@ class Trainer:
         )
         metrics = {k: jnp.mean(v) for k, v in losses.items()}
         metrics.update(self._psum(ep), lr=opt_state.hyperparams["learning_rate"], reward_mean=self._mean(traj.reward))
-        ts = ts.replace(params=params, opt_state=opt_state, return_stats=return_stats, key=key,
-                        update=ts.update + 1)
+        ts = ts.replace(params=params, opt_state=opt_state, return_stats=return_stats, key=key, update=ts.update + 1)
         return ts, metrics
 
     # --------------------------------------------------------------------------------------- chunks / train
@@ -501,6 +539,7 @@ class Trainer:
         """`n_updates` updates (pure). The count is traced, so one compiled program runs chunks of any length:
         a run's log, checkpoint and evaluation periods never compile the trainer again. Metrics are reduced over
         the chunk: episode fields summed, the rest averaged over updates."""
+
         def shard_updates(ts):
             n = jnp.asarray(n_updates, jnp.int32)
             metrics = {k: jnp.zeros((), jnp.float32) for k in METRIC_NAMES}
@@ -558,8 +597,13 @@ def make_train(config: TrainConfig, devices="auto") -> Train:
     jit_init = jax.jit(trainer.init, out_shardings=trainer.state_shardings)
     # Pinned output shardings: zero-element leaves (no obstacle slots, no LiDAR) would otherwise come back
     # replicated, and the compiled chunk refuses them as its next input.
-    chunk_shardings = {} if mesh is None else {
-        "out_shardings": (trainer.state_shardings, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))}
+    chunk_shardings = (
+        {}
+        if mesh is None
+        else {
+            "out_shardings": (trainer.state_shardings, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+        }
+    )
 
     def init(key, hparams: HParams | None = None) -> TrainState:
         if hparams is not None:

@@ -13,7 +13,7 @@ import dataclasses
 import io
 import math
 import pathlib
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -23,7 +23,14 @@ from tgrf_jax.train.ppo import METRIC_NAMES, SUMMED_METRICS
 
 # Columns of metrics.csv: counters and timings, episode outcomes as rates, then the averaged update metrics.
 CSV_FIELDS = (
-    "update", "env_steps", "wall_s", "sps", "episodes", "episode_return", "success_rate", "collision_rate",
+    "update",
+    "env_steps",
+    "wall_s",
+    "sps",
+    "episodes",
+    "episode_return",
+    "success_rate",
+    "collision_rate",
     "timeout_rate",
 ) + tuple(k for k in METRIC_NAMES if k not in SUMMED_METRICS)
 
@@ -48,9 +55,15 @@ def csv_row(metrics: dict, update: int, env_steps: int, wall_s: float, sps: floa
     episodes = m["episodes"]
     rate = lambda x: x / episodes if episodes > 0 else float("nan")  # noqa: E731
     row = dict(
-        update=update, env_steps=env_steps, wall_s=round(wall_s, 3), sps=round(sps, 1), episodes=int(episodes),
-        episode_return=rate(m["return_sum"]), success_rate=rate(m["successes"]),
-        collision_rate=rate(m["collisions"]), timeout_rate=rate(m["timeouts"]),
+        update=update,
+        env_steps=env_steps,
+        wall_s=round(wall_s, 3),
+        sps=round(sps, 1),
+        episodes=int(episodes),
+        episode_return=rate(m["return_sum"]),
+        success_rate=rate(m["successes"]),
+        collision_rate=rate(m["collisions"]),
+        timeout_rate=rate(m["timeouts"]),
     )
     row.update({k: m[k] for k in CSV_FIELDS if k not in row})
     return row
@@ -58,8 +71,10 @@ def csv_row(metrics: dict, update: int, env_steps: int, wall_s: float, sps: floa
 
 def combine_runs(per_run: Sequence[dict]) -> dict:
     """The chunk metrics of several runs as one: episode sums added, the other metrics averaged over runs."""
-    return {k: (float(np.sum(v)) if k in SUMMED_METRICS else float(np.mean(v)))
-            for k, v in ((k, [float(m[k]) for m in per_run]) for k in per_run[0])}
+    return {
+        k: (float(np.sum(v)) if k in SUMMED_METRICS else float(np.mean(v)))
+        for k, v in ((k, [float(m[k]) for m in per_run]) for k in per_run[0])
+    }
 
 
 def _fmt_steps(n: float) -> str:
@@ -107,8 +122,13 @@ class CsvWriter:
     `every_chunk`: the file gets a row at every chunk end, so on a resume from update u > 0 it must reach u (a
     missing or shortened file cannot be rebuilt from a checkpoint). The columns from "update" on are numbers."""
 
-    def __init__(self, path, rows: Callable[[ChunkMetrics], list[dict]], fields: Sequence[str] = CSV_FIELDS,
-                 every_chunk: bool = True):
+    def __init__(
+        self,
+        path,
+        rows: Callable[[ChunkMetrics], list[dict]],
+        fields: Sequence[str] = CSV_FIELDS,
+        every_chunk: bool = True,
+    ):
         self.path, self.rows, self.fields = pathlib.Path(path), rows, list(fields)
         self.every_chunk = every_chunk
         self.file = None
@@ -136,9 +156,11 @@ class CsvWriter:
             reached = max((int(r["update"]) for r in rows), default=None)
             if reached is None or reached < update:
                 have = "holds no rows" if reached is None else f"ends at update {reached}"
-                raise ConfigError(f"{str(self.path)!r} {have}, but the run resumes from its checkpoint of update "
-                                  f"{update}: the missing rows cannot be rebuilt from a checkpoint; put the file "
-                                  "back, or train the run again in a new directory")
+                raise ConfigError(
+                    f"{str(self.path)!r} {have}, but the run resumes from its checkpoint of update "
+                    f"{update}: the missing rows cannot be rebuilt from a checkpoint; put the file "
+                    "back, or train the run again in a new directory"
+                )
         if changed:
             buf = io.StringIO()
             w = csv.DictWriter(buf, fieldnames=self.fields)
@@ -151,18 +173,21 @@ class CsvWriter:
         """(rows up to `update`, whether the file must be rewritten to hold exactly them)."""
         if not self.path.is_file():
             if self.every_chunk and update > 0:
-                raise ConfigError(f"{str(self.path)!r} is missing, but the run resumes from its checkpoint of "
-                                  f"update {update}: its rows cannot be rebuilt from a checkpoint; put the file "
-                                  "back, or train the run again in a new directory")
+                raise ConfigError(
+                    f"{str(self.path)!r} is missing, but the run resumes from its checkpoint of "
+                    f"update {update}: its rows cannot be rebuilt from a checkpoint; put the file "
+                    "back, or train the run again in a new directory"
+                )
             return [], False
         name = repr(str(self.path))
         raw = self.path.read_bytes()
         try:
             text = raw.decode("utf-8")
         except UnicodeDecodeError as e:
-            line = raw[:e.start].count(b"\n") + 1
-            raise ConfigError(f"{name} is damaged: line {line} is not UTF-8 text; restore the file or delete that "
-                              "line") from None
+            line = raw[: e.start].count(b"\n") + 1
+            raise ConfigError(
+                f"{name} is damaged: line {line} is not UTF-8 text; restore the file or delete that line"
+            ) from None
         lines = text.splitlines(keepends=True)
         torn = bool(lines) and not lines[-1].endswith("\n")  # every row written ends with a line break
         if torn:
@@ -172,8 +197,10 @@ class CsvWriter:
         parsed = list(csv.reader(lines))
         if parsed[0] != self.fields:
             shown = ",".join(self.fields[:4])
-            raise ConfigError(f"{name} is damaged: line 1 is not its header (expected {shown},...); restore the "
-                              "file or put the header back")
+            raise ConfigError(
+                f"{name} is damaged: line 1 is not its header (expected {shown},...); restore the "
+                "file or put the header back"
+            )
         first_number = self.fields.index("update") if "update" in self.fields else 0
         rows, seen, changed, last = [], {}, torn, -1
         for i, values in enumerate(parsed[1:], start=2):

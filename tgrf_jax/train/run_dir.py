@@ -18,7 +18,7 @@ import dataclasses
 import datetime
 import pathlib
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import numpy as np
@@ -69,12 +69,17 @@ def check_resume_config(run_dir, config: TrainConfig) -> None:
     if not started.is_file():
         return
     old, new = TrainConfig.from_dict(load_yaml(started)).to_dict(), config.to_dict()
-    diffs = [f"{section}.{key}: {old[section].get(key)!r} -> {value!r}"
-             for section, fields in new.items() for key, value in fields.items()
-             if old[section].get(key) != value and f"{section}.{key}" not in RESUME_EDITABLE]
+    diffs = [
+        f"{section}.{key}: {old[section].get(key)!r} -> {value!r}"
+        for section, fields in new.items()
+        for key, value in fields.items()
+        if old[section].get(key) != value and f"{section}.{key}" not in RESUME_EDITABLE
+    ]
     if diffs:
-        raise ConfigError(f"{str(pathlib.Path(run_dir) / CONFIG_FILE)!r} was edited since the run started; on --resume "
-                          f"only {', '.join(RESUME_EDITABLE)} may change (to extend training), not: {'; '.join(diffs)}")
+        raise ConfigError(
+            f"{str(pathlib.Path(run_dir) / CONFIG_FILE)!r} was edited since the run started; on --resume "
+            f"only {', '.join(RESUME_EDITABLE)} may change (to extend training), not: {'; '.join(diffs)}"
+        )
 
 
 def load_run_config(run_dir) -> TrainConfig:
@@ -125,10 +130,12 @@ class SoloProgram:
 
     def describe(self, state) -> str:
         t, p = self.train.trainer, self.config.ppo
-        return (f"{t.env} | {self.config.network.name}/{self.config.network.size} "
-                f"({t.net.num_params(state.params):,} params) | {p.num_envs} envs x {p.num_steps} steps, "
-                f"{self.num_updates} updates = {self.num_updates * p.batch_size:,} env steps | "
-                f"{shards.describe(p.num_shards, t.mesh)} | {jax.devices()[0].platform}")
+        return (
+            f"{t.env} | {self.config.network.name}/{self.config.network.size} "
+            f"({t.net.num_params(state.params):,} params) | {p.num_envs} envs x {p.num_steps} steps, "
+            f"{self.num_updates} updates = {self.num_updates * p.batch_size:,} env steps | "
+            f"{shards.describe(p.num_shards, t.mesh)} | {jax.devices()[0].platform}"
+        )
 
 
 @dataclasses.dataclass
@@ -181,45 +188,67 @@ def _train_run(config, run_dir: pathlib.Path, resume: bool, from_step, log, stop
     program = SoloProgram(config)
     # created if missing: a run stopped before its first checkpoint has none yet
     ckpt = Checkpointer(ckpt_dir, keep=config.run.keep_checkpoints, create=True)
-    writers = [CsvWriter(run_dir / METRICS_FILE, run_rows(0)), TensorBoardWriter(run_dir / "tb"),
-               ProgressPrinter(say)]
+    writers = [CsvWriter(run_dir / METRICS_FILE, run_rows(0)), TensorBoardWriter(run_dir / "tb"), ProgressPrinter(say)]
     curve_writers = []
     if config.run.eval_every:
-        curve_writers.append(CsvWriter(run_dir / EVAL_CURVE_CSV, lambda rows: rows, CURVE_FIELDS,
-                                        every_chunk=False))
-    state_fns = [PeriodicEvaluation(program, config.run.eval_every, config.run.curve_episodes, config.run.eval_seed,
-                                    curve_writers, say)] if curve_writers else []
+        curve_writers.append(CsvWriter(run_dir / EVAL_CURVE_CSV, lambda rows: rows, CURVE_FIELDS, every_chunk=False))
+    state_fns = (
+        [
+            PeriodicEvaluation(
+                program, config.run.eval_every, config.run.curve_episodes, config.run.eval_seed, curve_writers, say
+            )
+        ]
+        if curve_writers
+        else []
+    )
     if resume:
         say(f"resuming {run_dir}")
     try:
-        out = train_runs(program, ckpt, config.run, resume=resume, from_step=from_step, progress_fns=writers,
-                         state_fns=state_fns, cut_every=[config.run.eval_every] if state_fns else [],
-                         run_dirs=[run_dir], say=say, stop_after_updates=stop_after_updates)
+        out = train_runs(
+            program,
+            ckpt,
+            config.run,
+            resume=resume,
+            from_step=from_step,
+            progress_fns=writers,
+            state_fns=state_fns,
+            cut_every=[config.run.eval_every] if state_fns else [],
+            run_dirs=[run_dir],
+            say=say,
+            stop_after_updates=stop_after_updates,
+        )
     finally:
         for w in writers + curve_writers:
             getattr(w, "close", lambda: None)()
         ckpt.close()
 
-    result = RunResult(run_dir, out.state, out.updates, out.train_seconds, out.evals and out.evals[0],
-                       out.compiled_chunks)
+    result = RunResult(
+        run_dir, out.state, out.updates, out.train_seconds, out.evals and out.evals[0], out.compiled_chunks
+    )
     if out.updates == program.num_updates:
         try:
             from tgrf_jax.train.plots import plot_learning_curve
 
-            plot_learning_curve(run_dir / METRICS_FILE, run_dir / CURVE_FILE,
-                                title=f"{config.run.name}: {program.train.trainer.env}")
+            plot_learning_curve(
+                run_dir / METRICS_FILE, run_dir / CURVE_FILE, title=f"{config.run.name}: {program.train.trainer.env}"
+            )
             if config.run.eval_every:
-                plot_curves({config.run.name: [read_curve(run_dir / EVAL_CURVE_CSV)]}, run_dir / EVAL_CURVE_PNG,
-                            title=f"{config.run.name}: test episodes during training")
+                plot_curves(
+                    {config.run.name: [read_curve(run_dir / EVAL_CURVE_CSV)]},
+                    run_dir / EVAL_CURVE_PNG,
+                    title=f"{config.run.name}: test episodes during training",
+                )
         except Exception as e:  # a plotting failure must not lose a finished run
             say(f"warning: could not plot the learning curve: {e}")
         if result.eval is not None:
             say(format_eval(result.eval))
         trained = out.updates - out.start
-        say(f"done: {out.updates} updates, {out.updates * config.ppo.batch_size:,} env steps; this process trained "
+        say(
+            f"done: {out.updates} updates, {out.updates * config.ppo.batch_size:,} env steps; this process trained "
             f"{trained} updates in {out.train_seconds:.1f} s "
             f"({trained * config.ppo.batch_size / max(out.train_seconds, 1e-9):,.0f} steps/s, compilation "
-            f"excluded); run dir {run_dir}")
+            f"excluded); run dir {run_dir}"
+        )
     say.close()
     return result
 

@@ -20,7 +20,7 @@ import contextlib
 import os
 import signal
 import threading
-from typing import Iterator
+from collections.abc import Iterator
 
 
 class StopRequest:
@@ -49,8 +49,11 @@ def stop_requests(enabled: bool = True) -> Iterator[StopRequest]:
             # os.write, not print: the handler may run while the main thread is inside a print; and a reader that
             # has gone (the parent that sent this signal) must not turn the stop into a crash
             try:
-                os.write(2, f"\n{name}: stopping after the running chunk, with a checkpoint"
-                            f"{' (Ctrl-C again: at once)' if signum == signal.SIGINT else ''}\n".encode())
+                os.write(
+                    2,
+                    f"\n{name}: stopping after the running chunk, with a checkpoint"
+                    f"{' (Ctrl-C again: at once)' if signum == signal.SIGINT else ''}\n".encode(),
+                )
             except OSError:
                 pass
 

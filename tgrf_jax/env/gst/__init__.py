@@ -21,6 +21,14 @@ from tgrf_jax.env.gst.weights import (
 )
 
 __all__ = [
-    "Prediction", "StepGaussians", "WeightsError", "from_torch_state_dict", "init_params", "load_params",
-    "predict", "pretrained", "save_params", "step_gaussians",
+    "Prediction",
+    "StepGaussians",
+    "WeightsError",
+    "from_torch_state_dict",
+    "init_params",
+    "load_params",
+    "predict",
+    "pretrained",
+    "save_params",
+    "step_gaussians",
 ]

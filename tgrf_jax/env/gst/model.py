@@ -150,8 +150,9 @@ class GST(nn.Module):
             raws.append(raw)
             mus.append(raw[:, :2] + base)
         raw = jnp.stack(raws, axis=1)  # (N, K, 5)
-        return StepGaussians(mu=jnp.stack(mus, axis=1), sigma=jnp.exp(raw[..., 2:4]), corr=jnp.tanh(raw[..., 4]),
-                             out_mask=mf > 0)
+        return StepGaussians(
+            mu=jnp.stack(mus, axis=1), sigma=jnp.exp(raw[..., 2:4]), corr=jnp.tanh(raw[..., 4]), out_mask=mf > 0
+        )
 
 
 MODEL = GST()
@@ -178,16 +179,21 @@ def _check_inputs(fn: str, positions, visible, frames: int | None) -> None:
     shape, vis = tuple(jnp.shape(positions)), tuple(jnp.shape(visible))
     t = "T" if frames is None else str(frames)
     if len(shape) != 3 or shape[-1] != 2 or (frames is not None and shape[1] != frames):
-        raise ValueError(f"gst.{fn}: positions has shape {shape}; expected (humans, {t}, 2): each human's last "
-                         f"{'observed' if frames is None else frames} positions (x, y), frame -1 = now (vmap over "
-                         "environments for a batch)")
+        raise ValueError(
+            f"gst.{fn}: positions has shape {shape}; expected (humans, {t}, 2): each human's last "
+            f"{'observed' if frames is None else frames} positions (x, y), frame -1 = now (vmap over "
+            "environments for a batch)"
+        )
     if vis != shape[:2]:
-        raise ValueError(f"gst.{fn}: visible has shape {vis}; expected {shape[:2]} (humans, {t}), one flag per "
-                         "human and frame of positions")
+        raise ValueError(
+            f"gst.{fn}: visible has shape {vis}; expected {shape[:2]} (humans, {t}), one flag per "
+            "human and frame of positions"
+        )
 
 
-def step_gaussians(params, positions, visible, *, dropout_key=None, dropout: float = DROPOUT,
-                   detach_spreads: bool = False) -> StepGaussians:
+def step_gaussians(
+    params, positions, visible, *, dropout_key=None, dropout: float = DROPOUT, detach_spreads: bool = False
+) -> StepGaussians:
     """Per-step Gaussians; dropout (rate `dropout`) is on only when `dropout_key` is given."""
     _check_inputs("step_gaussians", positions, visible, frames=None)
     rngs = None if dropout_key is None else {"dropout": dropout_key}

@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import json
 import pathlib
-from typing import Mapping
+from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -22,8 +22,13 @@ _GST = "gumbel_social_transformer."
 _LAYER = _GST + "node_encoder_layers.0."
 
 # flax module -> reference module (Linear / LayerNorm layout)
-_LINEAR = {"embed": _GST + "node_embedding.", "in_proj": _LAYER + "self_attn.in_proj_",
-           "out_proj": _LAYER + "self_attn.out_proj.", "ff1": _LAYER + "linear1.", "ff2": _LAYER + "linear2."}
+_LINEAR = {
+    "embed": _GST + "node_embedding.",
+    "in_proj": _LAYER + "self_attn.in_proj_",
+    "out_proj": _LAYER + "self_attn.out_proj.",
+    "ff1": _LAYER + "linear1.",
+    "ff2": _LAYER + "linear2.",
+}
 _NORM = {"norm_attn": _LAYER + "norm_node.", "norm_ff": _LAYER + "norm1_node."}
 
 PACKAGE_DIR = pathlib.Path(__file__).resolve().parent
@@ -41,7 +46,7 @@ def from_torch_state_dict(arrays: Mapping[str, np.ndarray]):
     "w/lstm.weight_ih_l0"); other keys are ignored. Layout as PyTorch stores it: Linear weights (out, in),
     attention in_proj rows [q; k; v], LSTM gate rows (i, f, g, o) with two bias vectors (summed here).
     """
-    sd = {(k[len(_PREFIX):] if k.startswith(_PREFIX) else k): np.asarray(v, np.float32) for k, v in arrays.items()}
+    sd = {(k[len(_PREFIX) :] if k.startswith(_PREFIX) else k): np.asarray(v, np.float32) for k, v in arrays.items()}
 
     def get(name, shape):
         if name not in sd:
@@ -54,19 +59,25 @@ def from_torch_state_dict(arrays: Mapping[str, np.ndarray]):
     spatial = {}
     for ours, theirs in _LINEAR.items():
         k_shape = template["spatial"][ours]["kernel"]
-        spatial[ours] = {"kernel": get(theirs + "weight", k_shape[::-1]).T,
-                         "bias": get(theirs + "bias", template["spatial"][ours]["bias"])}
+        spatial[ours] = {
+            "kernel": get(theirs + "weight", k_shape[::-1]).T,
+            "bias": get(theirs + "bias", template["spatial"][ours]["bias"]),
+        }
     for ours, theirs in _NORM.items():
         shape = template["spatial"][ours]["scale"]
         spatial[ours] = {"scale": get(theirs + "weight", shape), "bias": get(theirs + "bias", shape)}
     gates = template["lstm"]["ih"]["kernel"]
     lstm = {
-        "ih": {"kernel": get("lstm.weight_ih_l0", gates[::-1]).T,
-               "bias": get("lstm.bias_ih_l0", gates[1:]) + get("lstm.bias_hh_l0", gates[1:])},
+        "ih": {
+            "kernel": get("lstm.weight_ih_l0", gates[::-1]).T,
+            "bias": get("lstm.bias_ih_l0", gates[1:]) + get("lstm.bias_hh_l0", gates[1:]),
+        },
         "hh": {"kernel": get("lstm.weight_hh_l0", template["lstm"]["hh"]["kernel"][::-1]).T},
     }
-    head = {"kernel": get("hidden2pos.weight", template["head"]["kernel"][::-1]).T,
-            "bias": get("hidden2pos.bias", template["head"]["bias"])}
+    head = {
+        "kernel": get("hidden2pos.weight", template["head"]["kernel"][::-1]).T,
+        "bias": get("hidden2pos.bias", template["head"]["bias"]),
+    }
     speed = {"kernel": np.zeros(template["speed"]["kernel"], np.float32)}  # not in the released model
     params = {"spatial": spatial, "lstm": lstm, "head": head, "speed": speed, "cv_prior": np.zeros((), np.float32)}
     return jax.tree_util.tree_map(lambda x: np.array(x, np.float32, order="C"), params)
@@ -98,7 +109,7 @@ def unflatten(flat: Mapping[str, np.ndarray], source: str):
     return params
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _template() -> dict:
     """Flattened path -> shape/dtype of the model's parameters (traced abstractly: no computation)."""
     shapes = jax.eval_shape(init_params, jax.random.key(0))
@@ -154,6 +165,6 @@ def for_env(config) -> dict:
     return _pretrained_arrays(choice)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _pretrained_arrays(crowd: str):
     return jax.tree_util.tree_map(jnp.asarray, pretrained(crowd))

@@ -53,9 +53,20 @@ def dummy_obs(batch_shape, num_humans: int, obs_human_dim: int, lidar_rays: int 
 class ActorCritic:
     """A policy module plus the recurrent PPO interface. Stateless: parameters are passed explicitly."""
 
-    def __init__(self, name: str, size: str, module: nn.Module, obs_human_dim: int, num_humans: int, action_dim: int,
-                 frame: str = "world", rotate_action: bool = False, init_log_std: float = 0.0, lidar_rays: int = 0,
-                 lidar_range: float = 5.0):
+    def __init__(
+        self,
+        name: str,
+        size: str,
+        module: nn.Module,
+        obs_human_dim: int,
+        num_humans: int,
+        action_dim: int,
+        frame: str = "world",
+        rotate_action: bool = False,
+        init_log_std: float = 0.0,
+        lidar_rays: int = 0,
+        lidar_range: float = 5.0,
+    ):
         self.name = name
         self.size = size
         self.module = module
@@ -109,8 +120,7 @@ class ActorCritic:
             )
         ls = obs.lidar.shape
         if len(ls) != batch_ndim + 1 or ls[-1] != self.lidar_rays:
-            what = (f"a {self.lidar_rays}-ray LiDAR scan" if self.lidar_rays
-                    else "no LiDAR scan (env.lidar_rays = 0)")
+            what = f"a {self.lidar_rays}-ray LiDAR scan" if self.lidar_rays else "no LiDAR scan (env.lidar_rays = 0)"
             raise ValueError(
                 f"{self}: expects {what}: obs.lidar of shape {('...',) * batch_ndim + (self.lidar_rays,)} with "
                 f"{batch_ndim} batch axes, got {ls}"
@@ -162,6 +172,7 @@ class ActorCritic:
             means, log_std, values = self.module.apply(params, y, method="decode")
             means = self._action_to_world(means, axes)
         else:
+
             def body(carry, xs):
                 obs, resets = xs
                 carry, (mean, _, value) = self._step(params, carry, obs, resets)
@@ -172,9 +183,19 @@ class ActorCritic:
         return carry_T, self._dist(means, log_std), values
 
 
-def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, action_dim: int = 2, *,
-                 frame: str = "world", rotate_action: bool = False, init_log_std: float = 0.0, lidar_rays: int = 0,
-                 lidar_range: float = 5.0) -> ActorCritic:
+def make_network(
+    name: str,
+    size: str,
+    obs_human_dim: int,
+    num_humans: int,
+    action_dim: int = 2,
+    *,
+    frame: str = "world",
+    rotate_action: bool = False,
+    init_log_std: float = 0.0,
+    lidar_rays: int = 0,
+    lidar_range: float = 5.0,
+) -> ActorCritic:
     """Build a policy: name in ("hh_attn", "dsrnn", "mlp"), size in ("paper", "small").
 
     obs_human_dim: D, features per human row (2 without predictions, 2 (K + 1) with K predicted positions).
@@ -205,13 +226,33 @@ def make_network(name: str, size: str, obs_human_dim: int, num_humans: int, acti
             f"got {obs_human_dim}, {num_humans}, {action_dim}"
         )
     if name == "hh_attn":
-        module = HHAttnNet(HH_ATTN_SIZES[size], obs_human_dim=obs_human_dim, action_dim=action_dim,
-                           lidar_rays=lidar_rays, lidar_range=lidar_range)
+        module = HHAttnNet(
+            HH_ATTN_SIZES[size],
+            obs_human_dim=obs_human_dim,
+            action_dim=action_dim,
+            lidar_rays=lidar_rays,
+            lidar_range=lidar_range,
+        )
     elif name == "dsrnn":
-        module = DSRNNNet(DSRNN_SIZES[size], num_humans=num_humans, action_dim=action_dim, lidar_rays=lidar_rays,
-                          lidar_range=lidar_range)
+        module = DSRNNNet(
+            DSRNN_SIZES[size],
+            num_humans=num_humans,
+            action_dim=action_dim,
+            lidar_rays=lidar_rays,
+            lidar_range=lidar_range,
+        )
     else:
         module = MLPNet(MLP_SIZES[size], action_dim=action_dim, lidar_range=lidar_range)
-    return ActorCritic(name, size, module, obs_human_dim, num_humans, action_dim, frame=frame,
-                       rotate_action=rotate_action and frame == "goal", init_log_std=init_log_std,
-                       lidar_rays=lidar_rays, lidar_range=lidar_range)
+    return ActorCritic(
+        name,
+        size,
+        module,
+        obs_human_dim,
+        num_humans,
+        action_dim,
+        frame=frame,
+        rotate_action=rotate_action and frame == "goal",
+        init_log_std=init_log_std,
+        lidar_rays=lidar_rays,
+        lidar_range=lidar_range,
+    )

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -226,8 +226,17 @@ class LidarEncoder(nn.Module):
         c_in = 1
         for i, c in enumerate(s.channels):
             init = torch_linear_init(c_in * s.kernel)
-            x = nn.relu(nn.Conv(c, (s.kernel,), strides=(s.stride,), padding="CIRCULAR", kernel_init=init,
-                                bias_init=init, name=f"conv_{i}")(x))
+            x = nn.relu(
+                nn.Conv(
+                    c,
+                    (s.kernel,),
+                    strides=(s.stride,),
+                    padding="CIRCULAR",
+                    kernel_init=init,
+                    bias_init=init,
+                    name=f"conv_{i}",
+                )(x)
+            )
             c_in = c
         x = x.reshape(x.shape[:-2] + (x.shape[-2] * x.shape[-1],))
         return nn.relu(torch_dense(s.embed, x.shape[-1], name="embed")(x))

@@ -74,11 +74,25 @@ class DSRNNSize:
 
 DSRNN_SIZES = {
     "paper": DSRNNSize(
-        edge_embed=64, edge_rnn=256, attn=64, node_input=3, node_embed=64, node_rnn=128, output=256, head_hidden=256,
+        edge_embed=64,
+        edge_rnn=256,
+        attn=64,
+        node_input=3,
+        node_embed=64,
+        node_rnn=128,
+        output=256,
+        head_hidden=256,
         lidar=LidarEncoderSize(channels=(16, 16), embed=64),
     ),
     "small": DSRNNSize(
-        edge_embed=32, edge_rnn=64, attn=32, node_input=3, node_embed=32, node_rnn=64, output=64, head_hidden=64,
+        edge_embed=32,
+        edge_rnn=64,
+        attn=32,
+        node_input=3,
+        node_embed=32,
+        node_rnn=64,
+        output=64,
+        head_hidden=64,
         lidar=LidarEncoderSize(channels=(8, 8), embed=32),
     ),
 }

@@ -90,9 +90,7 @@ def to_goal_frame(obs: Obs) -> tuple[Obs, tuple]:
     zero = jnp.zeros_like(dist)
     heading = obs.robot_node[..., 6] - jnp.arctan2(ex[..., 1], ex[..., 0])
     heading = jnp.arctan2(jnp.sin(heading), jnp.cos(heading))
-    robot_node = jnp.stack(
-        [zero, zero, obs.robot_node[..., 2], dist, zero, obs.robot_node[..., 5], heading], axis=-1
-    )
+    robot_node = jnp.stack([zero, zero, obs.robot_node[..., 2], dist, zero, obs.robot_node[..., 5], heading], axis=-1)
     humans = obs.humans
     pairs = humans.reshape(humans.shape[:-1] + (humans.shape[-1] // 2, 2))
     h_ex, h_ey = ex[..., None, None, :], ey[..., None, None, :]

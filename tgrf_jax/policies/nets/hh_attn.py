@@ -116,13 +116,34 @@ class HHAttnSize:
 
 HH_ATTN_SIZES = {
     "paper": HHAttnSize(
-        robot_embed=256, hh_embed_hidden=128, hh_attn=512, hh_heads=8, human_embed=256, rh_attn=64, node_embed=64,
-        gru=128, output=256, head_hidden=256, lidar=LidarEncoderSize(channels=(16, 16), embed=64),
+        robot_embed=256,
+        hh_embed_hidden=128,
+        hh_attn=512,
+        hh_heads=8,
+        human_embed=256,
+        rh_attn=64,
+        node_embed=64,
+        gru=128,
+        output=256,
+        head_hidden=256,
+        lidar=LidarEncoderSize(channels=(16, 16), embed=64),
     ),
     "small": HHAttnSize(
-        robot_embed=64, hh_embed_hidden=32, hh_attn=64, hh_heads=2, human_embed=64, rh_attn=32, node_embed=32,
-        gru=64, output=64, head_hidden=64, qkv_pre_projection=False, max_humans=16, hh_qk_head_dim=16,
-        hh_out_projection=False, lidar=LidarEncoderSize(channels=(8, 8), embed=32),
+        robot_embed=64,
+        hh_embed_hidden=32,
+        hh_attn=64,
+        hh_heads=2,
+        human_embed=64,
+        rh_attn=32,
+        node_embed=32,
+        gru=64,
+        output=64,
+        head_hidden=64,
+        qkv_pre_projection=False,
+        max_humans=16,
+        hh_qk_head_dim=16,
+        hh_out_projection=False,
+        lidar=LidarEncoderSize(channels=(8, 8), embed=32),
     ),
 }
 
@@ -175,8 +196,9 @@ class HHAttnNet(nn.Module):
             self.hh_q = torch_dense(s.hh_attn, s.hh_attn)
             self.hh_k = torch_dense(s.hh_attn, s.hh_attn)
             self.hh_v = torch_dense(s.hh_attn, s.hh_attn)
-        self.hh_mha = MultiHeadAttention(s.hh_attn, s.hh_heads, qk_head_dim=s.hh_qk_head_dim,
-                                         out_projection=s.hh_out_projection)
+        self.hh_mha = MultiHeadAttention(
+            s.hh_attn, s.hh_heads, qk_head_dim=s.hh_qk_head_dim, out_projection=s.hh_out_projection
+        )
         self.spatial_linear = orthogonal_dense(s.human_embed)
         self.rh_query = torch_dense(s.rh_attn, s.robot_embed)
         self.rh_key = KeyIntoQuery(s.rh_attn, s.human_embed)
@@ -195,7 +217,7 @@ class HHAttnNet(nn.Module):
         num_humans = obs.humans.shape[-2]  # the attention temperature keeps the env's N (reference quirk)
         humans = masked_humans(obs.humans.astype(jnp.float32), mask)
         if 0 < s.max_humans < num_humans:
-            mask, humans = mask[..., :s.max_humans], humans[..., :s.max_humans, :]
+            mask, humans = mask[..., : s.max_humans], humans[..., : s.max_humans, :]
 
         robot = jnp.concatenate([obs.robot_vel, obs.robot_node], axis=-1).astype(jnp.float32)
         r_emb = nn.relu(self.robot_linear(robot))
@@ -210,8 +232,9 @@ class HHAttnNet(nn.Module):
         hum = nn.relu(self.spatial_linear(z))
 
         # robot-human attention (score multiplied by N / sqrt(a): reference quirk, see module docstring)
-        attn = robot_human_attention(self.rh_key(self.rh_query(r_emb)), hum, hum, mask,
-                                     scale=num_humans / math.sqrt(s.rh_attn))
+        attn = robot_human_attention(
+            self.rh_key(self.rh_query(r_emb)), hum, hum, mask, scale=num_humans / math.sqrt(s.rh_attn)
+        )
         enc = nn.relu(self.node_encoder(r_emb))
         att_emb = nn.relu(self.node_attn_embed(attn))
         if self.lidar_rays == 0:
