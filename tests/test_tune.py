@@ -1,0 +1,175 @@
+"""The tuner's pieces: the search space, the objective and the exploit-and-explore step."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import struct
+
+from tgrf_jax.config import ConfigError, TrainConfig
+from tgrf_jax.train.ppo import hparams_from_config
+from tgrf_jax.tune import exploit_explore, num_replaced, parse_objective, parse_space
+from tgrf_jax.tune.pbt import get_values, select_donors
+
+# --------------------------------------------------------------------------------------------- space
+
+
+def test_space_parses_linear_and_log_dims():
+    dims = parse_space(["reward.h_disc=0.5:5:log", "ppo.ent_coef=0:0.05"])
+    assert [(d.name, d.low, d.high, d.log) for d in dims] == [
+        ("reward.h_disc", 0.5, 5.0, True),
+        ("ppo.ent_coef", 0.0, 0.05, False),
+    ]
+
+
+@pytest.mark.parametrize(
+    "item, message",
+    [
+        ("reward.h_dsic=0.5:5", "did you mean 'reward.h_disc'"),
+        ("env.num_humans=5:10", "cannot be searched"),
+        ("reward.scheme=0:1", "cannot be searched"),
+        ("reward.h_disc=5:0.5", "lower bound must be below"),
+        ("reward.h_disc=1:1", "lower bound must be below"),
+        ("reward.h_disc=0:5:log", "positive lower bound"),
+        ("reward.h_disc=0.5:5:ln", "LO:HI:log"),
+        ("reward.h_disc=a:5", "not a number"),
+        ("reward.h_disc=0.5:inf", "finite"),
+        ("reward.sigma_disc=-1:1", "reward.sigma_disc"),  # the config's own range check
+        ("reward.h_disc", "FIELD=LO:HI"),
+    ],
+)
+def test_space_refuses_bad_items(item, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        parse_space([item])
+
+
+def test_space_refuses_a_field_twice():
+    with pytest.raises(ConfigError, match="given twice"):
+        parse_space(["reward.h_disc=0.5:5", "reward.h_disc=1:2"])
+
+
+# --------------------------------------------------------------------------------------------- objective
+
+
+def test_objective_reads_short_names_with_their_scale():
+    objective = parse_objective("0.4 * success + 0.3 * spl + 0.3 * psc")
+    result = {"success_rate": 0.9, "spl": 0.8, "personal_space_compliance": 95.0}
+    assert objective.metrics == ("success", "spl", "psc")
+    assert objective.score(result) == pytest.approx(0.4 * 0.9 + 0.3 * 0.8 + 0.3 * 0.95)
+
+
+def test_objective_functions_and_full_field_names():
+    objective = parse_objective("min(success_rate, 0.5) - abs(-collision) / 2")
+    assert objective.score({"success_rate": 0.9, "collision_rate": 0.2}) == pytest.approx(0.5 - 0.1)
+
+
+def test_objective_undefined_metric_ranks_last():
+    objective = parse_objective("success - 0.01 * nav_time")
+    assert objective.score({"success_rate": 0.0, "nav_time": None}) == -math.inf
+    assert objective.score({"success_rate": 0.0, "nav_time": float("nan")}) == -math.inf
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("success - 0.5 * colision", "unknown metric 'colision'.*did you mean 'collision'"),
+        ("success -", "syntax error"),
+        ("__import__('os').system('true')", "not allowed"),
+        ("success ** 2", "not allowed"),
+        ("success if spl else 0", "not allowed"),
+        ("3.5", "reads no metric"),
+        ("", "empty"),
+    ],
+)
+def test_objective_refuses_bad_expressions(text, message):
+    with pytest.raises(ConfigError, match=message):
+        parse_objective(text)
+
+
+# --------------------------------------------------------------------------------------------- exploit / explore
+
+
+@struct.dataclass
+class _State:  # the fields of TrainState that the step reads or must leave alone
+    params: dict
+    opt_state: jnp.ndarray
+    return_stats: jnp.ndarray
+    hparams: object
+    env_state: jnp.ndarray
+    key: jnp.ndarray
+
+
+def _population(n: int):
+    hp = hparams_from_config(TrainConfig())
+    hparams = jax.tree.map(lambda x: jnp.stack([x] * n), hp)
+    ids = jnp.arange(n, dtype=jnp.float32)
+    return _State(
+        params={"w": ids[:, None] * jnp.ones((n, 3))},
+        opt_state=ids * 10,
+        return_stats=ids * 100,
+        hparams=hparams.replace(lr=(ids + 1) * 1e-4),
+        env_state=ids * 1000,
+        key=jnp.stack([jax.random.PRNGKey(i) for i in range(n)]),
+    )
+
+
+def test_num_replaced():
+    assert [num_replaced(p, 0.25) for p in (2, 4, 8, 16, 3)] == [1, 1, 2, 4, 1]
+
+
+def test_select_donors_replaces_the_worst_with_the_best():
+    scores = jnp.array([0.5, 0.1, 0.9, 0.3, 0.8, 0.2, 0.7, 0.4])
+    for seed in range(20):
+        donor = np.asarray(select_donors(scores, jax.random.PRNGKey(seed), 2))
+        worst = {1, 5}
+        for i in range(8):
+            if i in worst:
+                assert donor[i] in {2, 4}
+            else:
+                assert donor[i] == i
+
+
+def test_exploit_explore_copies_learning_state_and_keeps_the_episodes():
+    dims = parse_space(["ppo.lr=1e-5:1e-3:log", "reward.h_disc=0.5:5"])
+    state = _population(8)
+    scores = jnp.array([0.5, 0.1, 0.9, 0.3, 0.8, 0.2, 0.7, 0.4])
+    step = jax.jit(lambda s, sc, k: exploit_explore(s, sc, k, dims, 0.25, 0.25))
+    new, record = step(state, scores, jax.random.PRNGKey(3))
+    donor = np.asarray(record.donor)
+    for i in range(8):
+        d = donor[i]
+        np.testing.assert_array_equal(new.params["w"][i], state.params["w"][d])
+        assert float(new.opt_state[i]) == float(state.opt_state[d])
+        assert float(new.return_stats[i]) == float(state.return_stats[d])
+        assert float(new.env_state[i]) == float(state.env_state[i])  # its own episodes
+        np.testing.assert_array_equal(new.key[i], state.key[i])
+    values = np.asarray(record.values)
+    np.testing.assert_array_equal(values, np.asarray(get_values(new.hparams, dims)))
+    old = np.asarray(get_values(state.hparams, dims))
+    kept = donor == np.arange(8)
+    np.testing.assert_array_equal(values[kept], old[kept])
+    for i in np.flatnonzero(~kept):
+        for j, d in enumerate(dims):
+            assert d.low <= values[i, j] <= d.high
+            donor_value = old[donor[i], j]
+            perturbed = [np.clip(donor_value * f, d.low, d.high) for f in (0.8, 1.25)]
+            # perturbed by a factor, or resampled within the bounds
+            assert any(np.isclose(values[i, j], p, rtol=1e-6) for p in perturbed) or d.low <= values[i, j] <= d.high
+    # deterministic: the same key gives the same step
+    again, record2 = step(state, scores, jax.random.PRNGKey(3))
+    np.testing.assert_array_equal(np.asarray(record2.donor), donor)
+    np.testing.assert_array_equal(np.asarray(record2.values), values)
+
+
+def test_explore_perturbs_by_the_stated_factors_without_resampling():
+    dims = parse_space(["ppo.lr=1e-6:1:log"])
+    state = _population(4)
+    new, record = exploit_explore(state, jnp.array([3.0, 2.0, 1.0, 0.0]), jax.random.PRNGKey(0), dims, 0.25, 0.0)
+    donor, values = np.asarray(record.donor), np.asarray(record.values)[:, 0]
+    assert donor[3] == 0 and list(donor[:3]) == [0, 1, 2]
+    ratio = values[3] / float(state.hparams.lr[0])
+    assert np.isclose(ratio, 0.8, rtol=1e-6) or np.isclose(ratio, 1.25, rtol=1e-6)

@@ -1,0 +1,98 @@
+"""The search space of a tune: `--space FIELD=LO:HI[:log]` items, checked before anything compiles.
+
+A searchable field is any numeric traced field (`tgrf_jax.config.griddable_fields`, less `reward.scheme`), so
+every member of a population shares one compiled program. Each bound is checked by the config's own range
+checks, so a space can never hand a member a value that `tgrf-train` would refuse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+
+from tgrf_jax.config import ConfigError, TrainConfig, config_fields, griddable_fields
+from tgrf_jax.fields import set_dotted
+
+__all__ = ["SearchDim", "hparams_path", "parse_space", "searchable_fields"]
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchDim:
+    """One searched field: its dotted name, bounds and scale (log: sampled and perturbed multiplicatively)."""
+
+    name: str
+    low: float
+    high: float
+    log: bool = False
+
+    def spec(self) -> str:
+        return f"{self.name}={self.low:g}:{self.high:g}" + (":log" if self.log else "")
+
+
+def searchable_fields() -> list[str]:
+    """Dotted names that `--space` accepts: the numeric traced fields."""
+    return [name for name in griddable_fields() if name != "reward.scheme"]
+
+
+def hparams_path(name: str) -> tuple[str, ...]:
+    """Attribute path of a searchable field inside the trainer's `HParams` pytree.
+
+    PPO coefficients are top-level leaves, env fields live in `hparams.env`, reward fields in
+    `hparams.env.reward` (`tgrf_jax.train.ppo.HParams`, `tgrf_jax.env.types.EnvParams`)."""
+    section, field = name.split(".", 1)
+    return {"ppo": (field,), "env": ("env", field), "reward": ("env", "reward", field)}[section]
+
+
+def _bound(text: str, item: str, which: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ConfigError(f"--space {item!r}: {which} bound {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ConfigError(f"--space {item!r}: {which} bound must be finite, got {text!r}")
+    return value
+
+
+def _check_in_config(dim: SearchDim, item: str, base: dict) -> None:
+    """Both bounds through the config's own checks (range, relations with the base config's other fields)."""
+    for value in (dim.low, dim.high):
+        try:
+            TrainConfig.from_dict(set_dotted(base, dim.name, value))
+        except ConfigError as e:
+            raise ConfigError(f"--space {item!r}: {e}") from None
+
+
+def parse_space(items: list[str], base: dict | None = None) -> tuple[SearchDim, ...]:
+    """Parse `FIELD=LO:HI[:log]` items into search dimensions; raises ConfigError naming the item."""
+    if not items:
+        raise ConfigError("--space: give at least one FIELD=LO:HI[:log], e.g. --space reward.h_disc=0.5:5:log")
+    base = {} if base is None else base
+    searchable, known = searchable_fields(), config_fields()
+    dims: list[SearchDim] = []
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--space {item!r} must look like FIELD=LO:HI or FIELD=LO:HI:log")
+        name, raw = (part.strip() for part in item.split("=", 1))
+        if name not in searchable:
+            if name in known or name == "reward.scheme":
+                why = "it is not a traced number, so members with different values cannot share one program"
+                raise ConfigError(f"--space {name}: cannot be searched: {why}; searchable: {', '.join(searchable)}")
+            close = difflib.get_close_matches(name, known, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ConfigError(f"--space {name}: unknown config key{hint}; searchable: {', '.join(searchable)}")
+        if any(d.name == name for d in dims):
+            raise ConfigError(f"--space {name} is given twice")
+        parts = raw.split(":")
+        if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2].strip() != "log"):
+            raise ConfigError(f"--space {item!r}: expected LO:HI or LO:HI:log")
+        low, high = _bound(parts[0], item, "lower"), _bound(parts[1], item, "upper")
+        if low >= high:
+            raise ConfigError(f"--space {item!r}: the lower bound must be below the upper one ({low:g} >= {high:g})")
+        log = len(parts) == 3
+        if log and low <= 0.0:
+            raise ConfigError(f"--space {item!r}: a log range needs a positive lower bound (got {low:g})")
+        dim = SearchDim(name, low, high, log)
+        _check_in_config(dim, item, base)
+        dims.append(dim)
+    return tuple(dims)
