@@ -40,6 +40,7 @@ from rvo2_reference import (  # noqa: E402
 )
 
 from tgrf_jax.env import orca  # noqa: E402
+from tgrf_jax.env.orca import obstacle_tree  # noqa: E402
 
 TOL = 1e-3  # m/s
 TH_OBST = 5.0  # the environment's timeHorizonObst
@@ -220,9 +221,11 @@ def test_kd_tree_splits_edges_as_rvo2():
     cs = [c for c in cases() if c["kind"] in OBSTACLE_KINDS]
     vertices = jnp.asarray(np.stack([c["arrays"][0] for c in cs]))
     counts = jnp.asarray(np.stack([c["arrays"][1] for c in cs]))
-    n_slots = orca._edge_capacity(SLOTS * VERTICES)
+    n_slots = obstacle_tree._edge_capacity(SLOTS * VERTICES)
     table = jax.jit(
-        lambda v, n: orca._obstacle_table(jnp.moveaxis(v[..., 0], 0, -1), jnp.moveaxis(v[..., 1], 0, -1), n.T, n_slots)
+        lambda v, n: obstacle_tree._obstacle_table(
+            jnp.moveaxis(v[..., 0], 0, -1), jnp.moveaxis(v[..., 1], 0, -1), n.T, n_slots
+        )
     )(vertices, counts)
     alive, ax, ay = (np.asarray(x) for x in (table.edges.alive, table.edges.ax, table.edges.ay))
     n_split = 0
