@@ -13,7 +13,10 @@ from tgrf_jax.train.run_dir import train_run
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
-HOLD = "import sys, time; from tgrf_jax.storage.lock import exclusive\nwith exclusive(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)"
+HOLD = (
+    "import sys, time; from tgrf_jax.storage.lock import exclusive\n"
+    "with exclusive(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)"
+)
 
 
 @pytest.fixture

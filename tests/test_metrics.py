@@ -46,17 +46,12 @@ def test_time_to_collision():
     human_pos = jnp.array([[[5.0, 0.0], [0.0, 3.0], [0.5, 0.0], [-5.0, 0.0]]])
     human_vel = jnp.zeros((1, 4, 2))
     radius = jnp.full((1, 4), 0.5)
-    ttc = lambda active: float(
-        time_to_collision(
-            robot_pos,
-            robot_vel,
-            0.5,
-            human_pos,
-            human_vel,
-            radius,  # noqa: E731
-            jnp.asarray([active]),
-        )[0]
-    )
+
+    def ttc(active):
+        return float(
+            time_to_collision(robot_pos, robot_vel, 0.5, human_pos, human_vel, radius, jnp.asarray([active]))[0]
+        )
+
     assert ttc([True, False, False, False]) == pytest.approx(4.0)  # gap 5 - 1 closed at 1 m/s
     assert ttc([False, True, False, True]) == math.inf  # beside and behind: never
     assert ttc([True, True, True, True]) == 0.0  # already touching

@@ -368,7 +368,7 @@ def test_apply_sequence_equals_stepwise_and_has_finite_gradients(name):
 
     carry = carry0
     for t in range(T):
-        obs_t = jax.tree_util.tree_map(lambda x: x[t], obs_seq)
+        obs_t = jax.tree_util.tree_map(lambda x, t=t: x[t], obs_seq)
         carry, mean, std, value = step(params, carry, obs_t, resets[t])
         np.testing.assert_allclose(means[t], mean, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(stds[t], std, rtol=1e-6)

@@ -47,7 +47,7 @@ def _finite(tree):
 @FAST
 @given(seed=seeds, action_list=actions)
 def test_any_action_gives_finite_state_and_bounded_speed(seed, action_list):
-    for prev, obs, state, reward, info in _run(RESET, STEP, seed, action_list, PARAMS):
+    for _prev, obs, state, reward, info in _run(RESET, STEP, seed, action_list, PARAMS):
         assert _finite(state.robot) and _finite(state.humans) and _finite(obs)
         assert np.isfinite(float(reward))
         assert float(jnp.linalg.norm(state.robot.vel)) <= float(PARAMS.robot_v_max) + 1e-5
@@ -58,7 +58,7 @@ def test_any_action_gives_finite_state_and_bounded_speed(seed, action_list):
 @given(seed=seeds, action_list=actions)
 def test_unicycle_any_action_stays_within_limits(seed, action_list):
     params = UNICYCLE.default_params
-    for prev, obs, state, reward, info in _run(U_RESET, U_STEP, seed, action_list, params):
+    for prev, _obs, state, reward, _info in _run(U_RESET, U_STEP, seed, action_list, params):
         assert _finite(state.robot) and np.isfinite(float(reward))
         assert abs(float(state.robot.speed)) <= float(params.robot_v_max) + 1e-6
         if int(state.step_count) > 0:  # not a fresh episode
@@ -96,7 +96,7 @@ def test_respawned_humans_are_valid(seed):
     circle, spread = float(PARAMS.circle_radius), float(PARAMS.spawn_noise) * np.sqrt(2)
     for i in range(n):
         obs, state, *_ = STEP_NO_RESET(jax.random.fold_in(key, i), state, jnp.zeros(2), PARAMS)
-        h = jax.tree_util.tree_map(lambda x: np.asarray(x)[i], state.humans)
+        h = jax.tree_util.tree_map(lambda x, i=i: np.asarray(x)[i], state.humans)
         # Human i is fresh (heading for its antipode); the ones still waiting keep their old goals.
         assert np.all(h.goal == -h.pos)
         waiting = np.all(np.asarray(state.humans.goal) == np.asarray(goals_before), axis=-1)

@@ -3,8 +3,8 @@ each with a checksum of its content.
 
 Orbax writes each step into a temporary directory and renames it only once every file is on disk (its atomic
 "finalize"), so a process killed mid-save leaves a `*.orbax-checkpoint-tmp-*` directory that `latest_step`
-ignores (and the next writer removes before its first save), never a half-written step. Saves here are synchronous: when `save`
-returns, the step is final.
+ignores (and the next writer removes before its first save), never a half-written step. Saves here are synchronous:
+when `save` returns, the step is final.
 
 A step holds the state (item "default") and, written in the same atomic save, the SHA-256 of its arrays (item
 "digest", `tree_digest`). `restore` recomputes the digest of what it read, so a step whose files changed after
@@ -15,8 +15,8 @@ A step without its "digest" item (deleted, or written before checksums existed) 
 as damaged: restoring it unverified could resume silently from a flipped bit.
 
 No data file of a step grows much past `DATA_FILE_BYTES` (1 MiB): arrays are cut into chunks of half that size, and
-orbax's OCDBT store starts a new data file once one holds that much, so a run directory fits storage that caps file sizes: a git host, an artifact
-store, a mail attachment.
+orbax's OCDBT store starts a new data file once one holds that much, so a run directory fits storage that caps file
+sizes: a git host, an artifact store, a mail attachment.
 
 Orbax cannot store zero-size arrays (a crowd of 0 humans); they are stored as one element and restored in the
 template's shape. A missing, damaged or unfitting checkpoint raises `CheckpointError` naming the path.

@@ -1,6 +1,7 @@
 """Policy networks (flax.linen): HH Attn, DS-RNN and an MLP baseline behind one recurrent actor-critic API.
 
-See `tgrf_jax.policies.nets.actor_critic` for the interface and each module's docstring for the architecture and presets.
+See `tgrf_jax.policies.nets.actor_critic` for the interface and each module's docstring for the architecture and
+presets.
 """
 
 from tgrf_jax.policies.nets.actor_critic import (

@@ -201,8 +201,8 @@ def make_network(
     obs_human_dim: D, features per human row (2 without predictions, 2 (K + 1) with K predicted positions).
     num_humans: N, rows of obs.humans (N = 0 is allowed).
     frame: "world" (the reference's inputs) or "goal" (inputs re-expressed in the robot-centred, goal-aligned frame;
-    see `tgrf_jax.policies.nets.frames`). rotate_action: the action is a planar velocity to rotate back to the world frame
-    (holonomic robots; a unicycle's (dv, dtheta) is frame-free). init_log_std: initial value of the log-std.
+    see `tgrf_jax.policies.nets.frames`). rotate_action: the action is a planar velocity to rotate back to the world
+    frame (holonomic robots; a unicycle's (dv, dtheta) is frame-free). init_log_std: initial value of the log-std.
     lidar_rays: R, rays of the 2-D LiDAR scan the policy reads (`Obs.lidar`, body frame; 0: none, the reference
     networks with exactly their parameters). HH Attn and DS-RNN encode it with a `LidarEncoder` (1-D circular
     convolutions, then a dense layer) whose output joins the robot's GRU input; the MLP appends the scaled ranges

@@ -3,8 +3,9 @@
 Input, per batch element: robot_vel (2) ‖ robot_node (7) ‖ flatten(humans with invisible rows zeroed) (N x D)
 ‖ human_mask as 0/1 (N), and with a LiDAR the scan (R rays, in the policy's frame, clipped to the sensor range and
 scaled to [0, 1]; R x hidden more weights in each of the actor's and critic's first layers). Rows arrive sorted by
-distance with visible humans first, so the flattened layout is "nearest first". The actor and critic each get their own 2-layer tanh MLP (orthogonal sqrt 2 init) on this
-input, then the same mean / value / log-std heads as the recurrent policies.
+distance with visible humans first, so the flattened layout is "nearest first". The actor and critic each get their
+own 2-layer tanh MLP (orthogonal sqrt 2 init) on this input, then the same mean / value / log-std heads as the
+recurrent policies.
 
 Presets: ``paper`` 2 x 256 hidden units (270,597 params with D = 12, N = 20; 168,197 with D = 2), ``small`` 2 x 64
 (43,077 / 17,477). The carry is a dummy zeros (B, 1) array (passed
