@@ -1,8 +1,9 @@
 """ORCA (optimal reciprocal collision avoidance) for all agents of a scene at once, with RVO2's semantics: one call of
 ``RVO::Agent::computeNewVelocity`` per agent, optionally with static obstacles processed as RVO2 does.
 
-The modules, in the order a solve uses them: obstacle_tree, agent_lines, obstacle_lines, linear_program,
-obstacle_lp, linear_program3, kernel (numerics: shared helpers).  How and why it is vectorised: docs/design.md.
+kernel (solve, solve_with_info) builds the half-planes with obstacle_tree, agent_lines and obstacle_lines, and
+solves for the velocities with linear_program, obstacle_lp and linear_program3; numerics holds shared helpers.
+How and why it is vectorised: docs/design.md.
 """
 
 from tgrf_jax.env.orca.kernel import CPU_BLOCK, WHOLE_BATCH, default_block, solve, solve_with_info
