@@ -12,7 +12,7 @@ exactly G x total_steps env steps and write the same artifacts (CSV, checkpoints
     ``chunk_compiles``: compilations of the chunk (training) program, counted by the loops themselves
   * ``compile_s``: seconds spent in backend compilation
 
-Each sequential run builds its own `make_train` and jits, so it compiles its own programs, as separate tgrf-train
+Each sequential run builds its own `make_trainer` and jits, so it compiles its own programs, as separate tgrf-train
 invocations do. Jax's in-memory caches are cleared before each measurement.
 
     python -m benchmarks.sweep_scaling --quick --out bench_results/sweep_quick.json
@@ -51,7 +51,7 @@ monitoring.register_event_duration_secs_listener(_listener)
 
 
 def _fresh():
-    sweep_program._PROGRAMS.clear()
+    sweep_program._TRAINERS.clear()
     jax.clear_caches()
     _compiles.clear()
 
@@ -72,7 +72,7 @@ def run_sweep_once(base: dict, g: int, workdir: pathlib.Path) -> dict:
     wall = time.perf_counter() - t0
     batch = spec.base_config.ppo.batch_size
     steps = g * res.updates * batch
-    program = next(iter(sweep_program._PROGRAMS.values()))
+    batched = next(iter(sweep_program._TRAINERS.values()))
     return {
         "mode": "sweep",
         "G": g,
@@ -81,7 +81,7 @@ def run_sweep_once(base: dict, g: int, workdir: pathlib.Path) -> dict:
         "train_s": round(res.train_seconds, 3),
         "env_steps": steps,
         "sps": round(steps / res.train_seconds, 1),
-        "chunk_compiles": len(program.compiled),
+        "chunk_compiles": len(batched.compiled),
         **_compile_stats(),
     }
 

@@ -3,7 +3,7 @@ and number of parallel envs, with a breakdown of where the time goes.
 
 For each (network, size, num_envs) on the paper scenario (20 humans, TGRF reward, const_vel predictions unless
 `--predictor` says otherwise):
-  * ``train_sps``: env steps per second of `run_chunk` (U updates of num_envs x num_steps steps, compiled once)
+  * ``train_sps``: env steps per second of `Trainer.run_chunk` (U updates of num_envs x num_steps steps, compiled once)
   * ``env_s`` / ``rollout_s`` / ``update_s`` per update: env stepping alone (a scan of the same number of
     auto-reset steps with fixed actions), the rollout (env + policy forward + sampling), and the rest
     (GAE, epochs x minibatches of sequence replay + backward + Adam) = update time - rollout time.
@@ -34,7 +34,7 @@ from benchmarks.common import machine_info, time_call, write_json
 from tgrf_jax import configure_cpu
 from tgrf_jax.config import TrainConfig
 from tgrf_jax.policies.nets.hh_attn import HH_ATTN_SIZES
-from tgrf_jax.train import make_train, shards
+from tgrf_jax.train import make_trainer, shards
 from tgrf_jax.train.ppo import Transition, ppo_loss
 
 
@@ -117,15 +117,14 @@ def measure(
             },
         }
     )
-    t = make_train(cfg)
-    tr = t.trainer
-    state = t.init(jax.random.PRNGKey(0), t.default_hparams)
+    tr = make_trainer(cfg)
+    state = tr.jit_init(jax.random.PRNGKey(0), tr.default_hparams)
     jax.block_until_ready(state)
     steps = num_envs * num_steps * updates
 
     n = np.int32(updates)
     start = time.perf_counter()
-    chunk = t.run_chunk.lower(state, n).compile()
+    chunk = tr.jit_run_chunk.lower(state, n).compile()
     compile_s = time.perf_counter() - start
     state, _ = jax.block_until_ready(chunk(state, n))  # warm-up; the chunk consumes its state, so it is threaded
     runs = []

@@ -27,25 +27,13 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
 
 
-def _exit_status(main):
-    """tgrf-predictor's main exits instead of returning its status."""
-
-    def run(argv):
-        try:
-            return main(argv)
-        except SystemExit as e:
-            return e.code
-
-    return run
-
-
 MAINS = {
     "tgrf-train": train_main,
     "tgrf-eval": eval_main,
     "tgrf-sweep": sweep_main,
     "tgrf-render": render_main,
     "tgrf-reproduce": reproduce_main,
-    "tgrf-predictor": _exit_status(predictor_main),
+    "tgrf-predictor": predictor_main,
 }
 UNWRITABLE = "/sys/tgrf-out"  # the kernel refuses new files under /sys, even to root
 FRESH = "{tmp}/fresh"  # an output path that must still not exist after the error
@@ -415,6 +403,38 @@ CASES = {
         *evaluate("{run}", "--set", "env.num_humans=3"),
         "was trained on observations of other shapes than these overrides give (env.num_humans: 2 -> 3)",
     ),
+    "render: a LiDAR for a run without one": (
+        *render("{run}", "--set", "env.lidar_rays=72"),
+        "was trained on observations of other shapes than these overrides give (env.lidar_rays: 0 -> 72)",
+    ),
+    "eval: a pretrained policy's LiDAR removed": (
+        *evaluate("--pretrained", "obstacles-random_obstacles-tgrf", "--set", "env.lidar_rays=0"),
+        "pretrained obstacles-random_obstacles-tgrf was trained with env.lidar_rays = 72; these overrides make it "
+        "env.lidar_rays = 0, which changes the shapes of its network's parameters",
+    ),
+    "eval: a pretrained policy's LiDAR halved": (
+        *evaluate("--pretrained", "obstacles-random_obstacles-tgrf", "--set", "env.lidar_rays=36"),
+        "was trained with env.lidar_rays = 72; these overrides make it env.lidar_rays = 36",
+    ),
+    "eval: a LiDAR for a pretrained policy without one": (
+        *evaluate("--pretrained", "scenarios-mix-tgrf", "--set", "env.lidar_rays=72"),
+        "pretrained scenarios-mix-tgrf was trained with env.lidar_rays = 0; these overrides make it "
+        "env.lidar_rays = 72",
+    ),
+    "render: a pretrained policy's LiDAR removed": (
+        *render("--pretrained", "obstacles-random_obstacles-tgrf", "--set", "env.lidar_rays=0"),
+        "was trained with env.lidar_rays = 72; these overrides make it env.lidar_rays = 0",
+    ),
+    "eval: a suite over an earlier one": (
+        "tgrf-eval",
+        ["--policy", "orca", "--episodes", "2", "--suite", "{tmp}/earlier_suite"],
+        "--suite '{tmp}/earlier_suite' holds an earlier suite (suite.md, suite.csv); give another directory, or "
+        "--overwrite to replace it",
+    ),
+    "eval: --overwrite without a suite": (
+        *evaluate("--policy", "orca", "--overwrite"),
+        "--overwrite lets --suite DIR replace an earlier suite; no --suite given",
+    ),
     "sweep: 100000 seeds in a plan": (
         "tgrf-sweep",
         [TINY, "--seeds", "100000", "--print-plan"],
@@ -616,6 +636,9 @@ def _files_named_by_cases(tmp, config_text):
     (tmp / "orphan_rows" / "mlp").mkdir(parents=True)
     (tmp / "orphan_rows" / "mlp" / "sweep.yaml").write_text("{}\n")
     (tmp / "bad_exp_out").mkdir()
+    (tmp / "earlier_suite").mkdir()
+    for name in ("suite.md", "suite.csv"):
+        (tmp / "earlier_suite" / name).write_text("an earlier suite's table\n")
     (tmp / "bad_exp_out" / "experiment.yaml").write_text("rows: [unclosed\n")
 
     rng = np.random.default_rng(0)
@@ -660,7 +683,8 @@ def _run(places, capsys, tool, argv, expected):
         return text.replace("{tmp}", str(places))
 
     # a checkpoint's or parameter file's shapes are traced against the model's
-    reads_checkpoints = any("{" + name + "}" in a for a in argv for name in RUN_DIRS) or "--params" in argv
+    reads_params = {"--params", "--pretrained"} & set(argv)
+    reads_checkpoints = any("{" + name + "}" in a for a in argv for name in RUN_DIRS) or bool(reads_params)
     argv = [fmt(a) for a in argv]
     with CompileCounter() as counter:
         code = MAINS[tool](argv)
@@ -720,8 +744,8 @@ def test_64_bit_jax_is_refused_in_one_line(case, places, capsys):
             "eval",
             ["{truncated_meta}"],
             re.compile(
-                r"tgrf-eval: error: checkpoint '{truncated_meta}/checkpoints/0' \(step 0\) is damaged: it cannot be read "
-                r"\(ValueError: .{20,330}\); no earlier step is intact"
+                r"tgrf-eval: error: checkpoint '{truncated_meta}/checkpoints/0' \(step 0\) is damaged: it cannot be "
+                r"read \(ValueError: .{20,330}\); no earlier step is intact"
             ),
         ),
     ],

@@ -117,12 +117,13 @@ def test_non_utf8_and_directory_configs_are_named(tmp_path):
 
 
 def test_eval_and_render_play_the_env_and_reward_of_a_train_config(tmp_path):
-    from tgrf_jax.cli.common import scenario
+    from tgrf_jax.cli.common import load_playable
 
     train = TrainConfig.from_yaml(CONFIGS / "tiny.yaml")
-    sc = scenario(str(CONFIGS / "tiny.yaml"), ["env.num_humans=3"], "tgrf-eval")
-    assert sc.env == EnvConfig.from_dict(dict(train.to_dict()["env"], num_humans=3)) and sc.reward == train.reward
+    playable = load_playable(str(CONFIGS / "tiny.yaml"), ["env.num_humans=3"], "tgrf-eval")
+    assert playable.env == EnvConfig.from_dict(dict(train.to_dict()["env"], num_humans=3))
+    assert playable.reward == train.reward and not playable.has_policy
     typo = tmp_path / "typo.yaml"
     typo.write_text((CONFIGS / "tiny.yaml").read_text().replace("num_envs:", "num_env:"))
     with pytest.raises(ConfigError, match=r"unknown config key 'ppo.num_env'"):  # the other sections are checked too
-        scenario(str(typo), [], "tgrf-eval")
+        load_playable(str(typo), [], "tgrf-eval")

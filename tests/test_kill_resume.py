@@ -65,9 +65,9 @@ elif when.startswith("commit:"):
         return rename(src, dst, *args, **kwargs)
     os.rename = commit
 elif when == "final-evaluation":
-    from tgrf_jax.sweep.program import SweepBatch
+    from tgrf_jax.sweep.program import BatchedProgram
     from tgrf_jax.train.run_dir import SoloProgram
-    SoloProgram.evaluate = SweepBatch.evaluate = die
+    SoloProgram.evaluate = BatchedProgram.evaluate = die
 elif when == "before-provenance":
     from tgrf_jax.experiments import runner
     write = runner.write_atomic

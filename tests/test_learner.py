@@ -10,7 +10,7 @@ import pytest
 from helpers import tiny_config
 
 from tgrf_jax.env import social_force
-from tgrf_jax.train import Transition, hparams_from_config, make_train, ppo_loss
+from tgrf_jax.train import Transition, hparams_from_config, make_trainer, ppo_loss
 from tgrf_jax.train.ppo import METRIC_NAMES, SUMMED_METRICS, ReturnStats, learning_rate
 
 # ------------------------------------------------------------------------------------------------- PPO loss
@@ -280,15 +280,15 @@ def test_train_equals_one_chunk_of_all_its_updates():
     The two are different XLA programs around the same update. On XLA:CPU, the suite's platform, they agree bit
     for bit (checked at both of the suite's XLA optimisation levels); elsewhere the comparison allows float32
     rounding (rtol 1e-5), as a different compiler may order the loop bodies' arithmetic differently."""
-    t = make_train(tiny_config(ppo={"anneal_lr": True}))
-    key, hp, n = jax.random.PRNGKey(5), t.default_hparams, t.trainer.num_updates
+    t = make_trainer(tiny_config(ppo={"anneal_lr": True}))
+    key, hp, n = jax.random.PRNGKey(5), t.default_hparams, t.num_updates
     final, per_update = jax.jit(t.train)(key, hp)
     assert set(per_update) == set(METRIC_NAMES)
     for name, v in per_update.items():
         assert v.shape == (n,), name
     np.testing.assert_allclose(per_update["lr"], float(hp.lr) * (1 - np.arange(n) / n), rtol=1e-6)
 
-    chunked, chunk_metrics = t.run_chunk(t.init(key, hp), n)
+    chunked, chunk_metrics = t.jit_run_chunk(t.jit_init(key, hp), n)
     exact = jax.default_backend() == "cpu"
     assert int(final.update) == int(chunked.update) == n
     for a, b in zip(jax.tree_util.tree_leaves(final), jax.tree_util.tree_leaves(chunked)):
@@ -297,7 +297,7 @@ def test_train_equals_one_chunk_of_all_its_updates():
             np.testing.assert_array_equal(a, b)
         else:
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
-    initial = t.init(key, hp).params
+    initial = t.jit_init(key, hp).params
     moved = max(
         float(jnp.abs(x - y).max())
         for x, y in zip(jax.tree_util.tree_leaves(final.params), jax.tree_util.tree_leaves(initial))

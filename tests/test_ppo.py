@@ -10,7 +10,7 @@ from tgrf_jax.config import TrainConfig
 from tgrf_jax.evaluate import evaluate
 from tgrf_jax.policies.learned import LearnedPolicy
 from tgrf_jax.storage.checkpoint import tree_digest as params_digest
-from tgrf_jax.train import compute_gae, make_train
+from tgrf_jax.train import compute_gae, make_trainer
 
 # ----------------------------------------------------------------------------------------------------- GAE
 
@@ -124,15 +124,14 @@ def test_rollout_replay_matches_stored_log_probs_and_values():
         network={"name": "hh_attn"},
         ppo={"num_steps": 12},
     )
-    t = make_train(cfg)
-    tr = t.trainer
-    state = t.init(jax.random.PRNGKey(3), t.default_hparams)
+    t = make_trainer(cfg)
+    state = t.jit_init(jax.random.PRNGKey(3), t.default_hparams)
     state = state.replace(carry=jax.tree_util.tree_map(lambda c: c + 0.3, state.carry), resets=state.resets & False)
 
     @jax.jit  # the rollout and its replay in one program (run eagerly, the replay compiles op by op)
     def go(state):
-        new_state, traj, carry0, last_value, ep = tr.rollout(state, jax.random.PRNGKey(4))
-        _, pi, values = tr.net.apply_sequence(state.params, carry0, traj.obs, traj.resets)
+        new_state, traj, carry0, last_value, ep = t.rollout(state, jax.random.PRNGKey(4))
+        _, pi, values = t.net.apply_sequence(state.params, carry0, traj.obs, traj.resets)
         return traj, last_value, ep, values, pi.log_prob(traj.action)
 
     traj, last_value, ep, values, log_prob = go(state)
@@ -151,12 +150,12 @@ def test_rollout_replay_matches_stored_log_probs_and_values():
 def test_a_run_is_a_function_of_its_seed_whatever_its_chunks():
     """The same seed gives the same parameters bit for bit, however the updates are cut into chunks (the update
     count is traced, so every plan runs the one compiled program); another seed gives others."""
-    t = make_train(tiny_config())
+    t = make_trainer(tiny_config())
 
     def run(seed, chunks):
-        state = t.init(jax.random.PRNGKey(seed), t.default_hparams)
+        state = t.jit_init(jax.random.PRNGKey(seed), t.default_hparams)
         for n in chunks:
-            state, m = t.run_chunk(state, n)
+            state, m = t.jit_run_chunk(state, n)
             assert all(np.isfinite(float(v)) for v in m.values())
         assert int(state.update) == sum(chunks)
         return params_digest(state.params)
@@ -176,15 +175,15 @@ def test_gradient_microbatches_give_the_same_update():
             ppo={"microbatch_envs": microbatch_envs},
         )
         assert cfg.ppo.num_microbatches == {0: 1, 1: 4}[microbatch_envs]
-        t = make_train(cfg)
-        state, metrics = t.run_chunk(t.init(jax.random.PRNGKey(0), t.default_hparams), 2)
+        t = make_trainer(cfg)
+        state, metrics = t.jit_run_chunk(t.jit_init(jax.random.PRNGKey(0), t.default_hparams), 2)
         results.append((np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(state.params)]), metrics))
     (whole, m_whole), *sliced = results
     for params, metrics in sliced:
         np.testing.assert_allclose(params, whole, rtol=1e-4, atol=1e-6)
         for name in ("loss", "approx_kl", "grad_norm"):
             np.testing.assert_allclose(float(metrics[name]), float(m_whole[name]), rtol=1e-4, atol=1e-7)
-    initial = t.init(jax.random.PRNGKey(0), t.default_hparams).params
+    initial = t.jit_init(jax.random.PRNGKey(0), t.default_hparams).params
     moved = whole - np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(initial)])
     assert np.abs(moved).max() > 1e-4  # the updates did something, so the comparison means something
 
@@ -213,20 +212,20 @@ def test_train_is_vmappable_over_seeds_and_hparams():
     (jit(vmap(train)) with init and updates fused in ONE program hangs in XLA:CPU on this machine (jax 0.10.2);
     the two-program form below is equivalent and is what sweeps should use.)"""
     cfg = tiny_config()  # the config of the tests above: the unbatched 2-update chunk below is compiled already
-    t = make_train(cfg)
+    t = make_trainer(cfg)
     hp = t.default_hparams
     hps = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), hp)
     hps = hps.replace(
         lr=jnp.array([1e-3, 3e-4]), env=hps.env.replace(reward=hps.env.reward.replace(h_disc=jnp.array([2.5, 1.0])))
     )
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    states = jax.jit(jax.vmap(t.trainer.init))(keys, hps)
-    states, metrics = jax.jit(jax.vmap(lambda s: t.trainer.run_updates(s, 2)))(states)
+    states = jax.jit(jax.vmap(t.init))(keys, hps)
+    states, metrics = jax.jit(jax.vmap(lambda s: t.run_chunk(s, 2)))(states)
     assert states.update.shape == (2,) and metrics["loss"].shape == (2,)
     assert np.isfinite(np.asarray(metrics["loss"])).all()
     # each vmapped member equals its own unbatched run
-    single = t.init(keys[1], jax.tree_util.tree_map(lambda x: x[1], hps))
-    single, _ = t.run_chunk(single, 2)
+    single = t.jit_init(keys[1], jax.tree_util.tree_map(lambda x: x[1], hps))
+    single, _ = t.jit_run_chunk(single, 2)
     np.testing.assert_allclose(
         jax.tree_util.tree_leaves(states.params)[0][1],
         jax.tree_util.tree_leaves(single.params)[0],
@@ -242,12 +241,12 @@ def test_learns_to_reach_goal_without_humans():
     cfg = tiny_config(
         ppo={"num_envs": 32, "num_steps": 32, "total_steps": 32 * 32 * 60, "update_epochs": 4, "lr": 1e-3}
     )
-    t = make_train(cfg)
-    state = t.init(jax.random.PRNGKey(0), t.default_hparams)
-    state, first = t.run_chunk(state, 2)
+    t = make_trainer(cfg)
+    state = t.jit_init(jax.random.PRNGKey(0), t.default_hparams)
+    state, first = t.jit_run_chunk(state, 2)
     rates = []
     for _ in range(14):
-        state, m = t.run_chunk(state, 4)
+        state, m = t.jit_run_chunk(state, 4)
         assert all(np.isfinite(float(v)) for v in m.values()), m
         rates.append(float(m["successes"]) / max(float(m["episodes"]), 1.0))
     first_rate = float(first["successes"]) / max(float(first["episodes"]), 1.0)
@@ -255,7 +254,7 @@ def test_learns_to_reach_goal_without_humans():
     assert max(rates[-2:]) > 0.9, rates
     # The deterministic (mean) action is slower than the clipped high-entropy samples this early in training, so
     # some evaluation episodes still time out: a looser bar than for the training episodes.
-    result = evaluate(t.trainer.env, LearnedPolicy(t.trainer.net, state.params), jax.random.key(7), 64)
+    result = evaluate(t.env, LearnedPolicy(t.net, state.params), jax.random.key(7), 64)
     assert result.success_rate >= 0.7 and result.collision_rate == 0.0, result
 
 
@@ -265,10 +264,10 @@ def test_hh_attn_learns_to_reach_goal_without_humans():
         network={"name": "hh_attn", "size": "small"},
         ppo={"num_envs": 32, "num_steps": 32, "total_steps": 32 * 32 * 40, "update_epochs": 4, "lr": 1e-3},
     )
-    t = make_train(cfg)
-    state = t.init(jax.random.PRNGKey(0), t.default_hparams)
-    state, _ = t.run_chunk(state, 40)
-    result = evaluate(t.trainer.env, LearnedPolicy(t.trainer.net, state.params), jax.random.key(7), 100)
+    t = make_trainer(cfg)
+    state = t.jit_init(jax.random.PRNGKey(0), t.default_hparams)
+    state, _ = t.jit_run_chunk(state, 40)
+    result = evaluate(t.env, LearnedPolicy(t.net, state.params), jax.random.key(7), 100)
     assert result.success_rate >= 0.9, result
 
 

@@ -4,6 +4,7 @@ import json
 import pathlib
 
 import pytest
+from helpers import CompileCounter
 
 from tgrf_jax.cli import eval_main, render_main, train_main
 from tgrf_jax.config import SCENARIOS
@@ -58,14 +59,22 @@ def test_every_scenario_runs_in_every_tool(name, tmp_path):
 
 def test_suite_writes_its_table_and_thumbnails(tmp_path, capsys):
     out = tmp_path / "suite"
-    assert (
-        eval_main([TINY, "--suite", str(out), "--episodes", "2", "--policy", "straight", "--set", "env.time_limit=3"])
-        == 0
-    )
+    argv = [TINY, "--suite", str(out), "--episodes", "2", "--policy", "straight", "--set", "env.time_limit=3"]
+    assert eval_main(argv) == 0
     rows = (out / "suite.csv").read_text().splitlines()
     assert len(rows) == 1 + len(SCENARIOS) * 4 and rows[0].startswith("scenario,humans,policy,n_episodes")
     assert "spl" in rows[0] and "min_ttc" in rows[0]
     table = (out / "suite.md").read_text()
     assert "| robot_crowding | 30 | straight |" in table
     assert sorted(p.stem for p in (out / "thumbnails").glob("*.png")) == sorted(SCENARIOS)
-    assert f"[{len(SCENARIOS) * 4}/{len(SCENARIOS) * 4}]" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"[{len(SCENARIOS) * 4}/{len(SCENARIOS) * 4}]" in printed
+    assert printed.index("suite: compiling the evaluation program") < printed.index(f"[1/{len(SCENARIOS) * 4}]")
+    # the suite is not overwritten without a word: the second run is refused before anything is played
+    table = (out / "suite.md").read_text()
+    with CompileCounter() as counter:
+        assert eval_main(argv) == 2
+    assert counter.compiles == 0 and (out / "suite.md").read_text() == table
+    err = capsys.readouterr().err
+    assert f"tgrf-eval: error: --suite {str(out)!r} holds an earlier suite (suite.md, suite.csv)" in err
+    assert "--overwrite to replace it" in err

@@ -12,7 +12,7 @@ import pytest
 from helpers import cpu_devices_env
 
 from tgrf_jax.config import ConfigError, TrainConfig
-from tgrf_jax.train import make_train, shards
+from tgrf_jax.train import make_trainer, shards
 from tgrf_jax.train.shards import SHARD_AXIS
 
 
@@ -57,7 +57,7 @@ def test_bad_shard_settings_are_rejected_with_the_fields_named(ppo, pattern):
 
 def test_statistics_are_taken_over_all_shards():
     """Advantage/value-target means inside a shard see the whole batch, and every shard gets the same result."""
-    trainer = make_train(sharded_config(), devices=None).trainer
+    trainer = make_trainer(sharded_config(), devices=None)
     x = jnp.arange(12.0).reshape(2, 6) ** 2  # two shards of 6 values with different means
     means = jax.vmap(trainer._mean, axis_name=SHARD_AXIS)(x)
     np.testing.assert_allclose(np.asarray(means), [np.mean(np.asarray(x))] * 2, rtol=1e-6)
@@ -71,21 +71,21 @@ def test_statistics_are_taken_over_all_shards():
 PLACEMENTS = r"""
 import json, sys, jax, numpy as np
 from tgrf_jax.config import TrainConfig
-from tgrf_jax.train import make_train, shards
+from tgrf_jax.train import make_trainer, shards
 
 def flat(tree):
     return np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(jax.device_get(tree))]).tolist()
 
 def train(t):
-    initial = t.init(jax.random.PRNGKey(3), t.default_hparams)
-    initial_params = flat(initial.params)  # before run_chunk, which consumes (donates) the state
+    initial = t.jit_init(jax.random.PRNGKey(3), t.default_hparams)
+    initial_params = flat(initial.params)  # before jit_run_chunk, which consumes (donates) the state
     # compiled once, as a run compiles it; each chunk's output is the next chunk's input
-    compiled = t.run_chunk.lower(initial, np.int32(1)).compile()
+    compiled = t.jit_run_chunk.lower(initial, np.int32(1)).compile()
     state, _ = compiled(initial, np.int32(2))
     donated = all(x.is_deleted() for x in jax.tree_util.tree_leaves(initial.params))  # updated in place
     state, metrics = compiled(state, np.int32(1))
     return {
-        "placement": shards.describe(2, t.trainer.mesh), "mesh_is_none": t.trainer.mesh is None,
+        "placement": shards.describe(2, t.mesh), "mesh_is_none": t.mesh is None,
         "params": flat(state.params), "initial_params": initial_params,
         "metrics": {k: float(v) for k, v in metrics.items()},
         "obs": np.asarray(state.obs.humans).ravel().tolist(), "obs_envs": int(state.obs.humans.shape[0]),
@@ -93,7 +93,7 @@ def train(t):
     }
 
 cfg = TrainConfig.from_dict(json.loads(sys.argv[1]))
-mesh, vmap = make_train(cfg, devices="auto"), make_train(cfg, devices=None)
+mesh, vmap = make_trainer(cfg, devices="auto"), make_trainer(cfg, devices=None)
 print(json.dumps({"devices": len(jax.devices()), "mesh": train(mesh), "vmap": train(vmap), "vmap_again": train(vmap)}))
 """
 

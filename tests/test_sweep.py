@@ -23,7 +23,7 @@ from tgrf_jax.cli.sweep import main
 from tgrf_jax.config import ConfigError, TrainConfig, load_yaml
 from tgrf_jax.sweep import (
     SweepSpec,
-    get_program,
+    batched_trainer,
     griddable_fields,
     parse_grid,
     plot_sweep,
@@ -134,8 +134,8 @@ def test_sweep_artifacts(sweep):
     assert spec["seeds"] == [0, 1] and [r["name"] for r in spec["runs"]] == NAMES
     assert len(_rows(sweep / "metrics.csv")) == 6 * 6  # runs x chunks, long format
     # one compiled training program for all runs and every chunk length, at the batch of all 6 runs
-    program = get_program(TrainConfig.from_dict(spec["base"]), jax.devices())
-    assert list(program.compiled) == [6]
+    batched = batched_trainer(TrainConfig.from_dict(spec["base"]), jax.devices())
+    assert list(batched.compiled) == [6]
 
     # the summary is the mean / sample std over the seeds of each grid point of the per-run evaluations
     evals = {r["run"]: r for r in _rows(sweep / "evals.csv")}

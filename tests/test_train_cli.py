@@ -43,6 +43,13 @@ def test_train_writes_all_artifacts(tiny_run):
     assert ev["results"]["learned"]["n_episodes"] == 8 and ev["updates"] == 12
     assert "run.eval_episodes" not in (tiny_run / "config.yaml").read_text()
     assert "eval_episodes: 8" in (tiny_run / "config.yaml").read_text()
+    # the one compilation that may take long is announced before it starts
+    log = (tiny_run / "progress.log").read_text().splitlines()
+    assert [line for line in log if "the training program" in line][0] == "compiling the training program ..."
+    assert (
+        log.index("compiling the training program ...") + 1
+        == [i for i, line in enumerate(log) if line.startswith("compiled the training program in ")][0]
+    )
 
 
 def test_eval_run_dir(tiny_run, tmp_path, monkeypatch, capsys):
@@ -55,6 +62,8 @@ def test_eval_run_dir(tiny_run, tmp_path, monkeypatch, capsys):
     assert set(payload["results"]) == {"learned", "straight"} and payload["update"] == 12
     assert {r["n_episodes"] for r in payload["results"].values()} == {6}
     lines = capsys.readouterr().out.splitlines()
+    compiling = [i for i, line in enumerate(lines) if "compiling the evaluation program" in line]
+    assert len(compiling) == 1 and compiling[0] < min(i for i, line in enumerate(lines) if "/6 episodes" in line)
     assert [line.strip() for line in lines if "/6 episodes" in line] == [
         "learned: 3/6 episodes",
         "learned: 6/6 episodes",

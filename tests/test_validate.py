@@ -97,22 +97,22 @@ def test_evaluate_and_record_check_their_params_before_compiling(params):
 
 
 def test_a_trainer_checks_hand_built_hyper_parameters():
-    from tgrf_jax.train.ppo import make_train
+    from tgrf_jax.train.ppo import make_trainer
 
-    t = make_train(TrainConfig.from_yaml(ROOT / "configs" / "tiny.yaml"))
+    t = make_trainer(TrainConfig.from_yaml(ROOT / "configs" / "tiny.yaml"))
     hp, key = t.default_hparams, jax.random.PRNGKey(0)
     negative_lr, zero_dt = hp.replace(lr=np.float32(-1e-3)), hp.replace(env=hp.env.replace(dt=np.float32(0.0)))
     with CompileCounter() as counter:
         with pytest.raises(ConfigError, match=r"ppo.lr = -0.001 is out of range; allowed: > 0.0 and <= 1.0"):
-            t.init(key, negative_lr)
+            t.jit_init(key, negative_lr)
         with pytest.raises(ConfigError, match=r"env.dt = 0.0 is out of range"):
-            t.init(key, zero_dt)
+            t.jit_init(key, zero_dt)
     assert counter.compiles == 0
 
 
 def test_a_sweep_checks_every_run_s_hyper_parameters(monkeypatch):
     from tgrf_jax.sweep import SweepSpec
-    from tgrf_jax.sweep.program import SweepBatch
+    from tgrf_jax.sweep.program import BatchedProgram
     from tgrf_jax.train import ppo
 
     runs = SweepSpec.create(str(ROOT / "configs" / "tiny.yaml"), ["reward.h_disc=1,2"], "1", []).runs()
@@ -125,5 +125,5 @@ def test_a_sweep_checks_every_run_s_hyper_parameters(monkeypatch):
     monkeypatch.setattr(ppo, "hparams_from_config", second_run_with_zero_dt)
     with CompileCounter() as counter:
         with pytest.raises(ConfigError, match=r"env.dt\[1\] = 0.0 is out of range"):
-            SweepBatch(runs, jax.local_devices()[:1])
+            BatchedProgram(runs, jax.local_devices()[:1])
     assert counter.compiles == 0

@@ -1,8 +1,7 @@
 """The command-line tools: tgrf-train, tgrf-eval, tgrf-sweep, tgrf-render, tgrf-reproduce, tgrf-predictor and
-tgrf-export, one
-module each with its `main` (`common` holds the shared config / `--set` / run-directory arguments and the process
-setup). The functions below import their tool on call, so `python -m tgrf_jax.cli.<tool>` runs a module not
-imported before."""
+tgrf-export, one module each with its `main` (`common` holds `command_line`, the error and interrupt handling every
+`main` runs in, the shared config / `--set` / run-directory arguments and the process setup). The functions below
+import their tool on call, so `python -m tgrf_jax.cli.<tool>` runs a module not imported before."""
 
 
 def train_main(argv=None) -> int:

@@ -1,13 +1,16 @@
-"""What the command-line tools share: the config / `--set` / run-directory arguments and their loading, error
-reporting, and the process setup done before JAX starts (CPU flags, compilation cache)."""
+"""What the command-line tools share: `command_line` (their error and interrupt handling), the config / `--set` /
+run-directory arguments and their loading (`load_playable`, `check_policy_fits`), and the process setup done
+before JAX starts (CPU flags, compilation cache)."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import os
 import pathlib
 import sys
+from collections.abc import Callable
 
 from tgrf_jax.config import (
     ConfigError,
@@ -39,16 +42,21 @@ def train_config(path: str | None, overrides: list[str]) -> TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class Scenario:
-    """What tgrf-eval and tgrf-render play: a run directory's env / reward (and its trained policy), or the env /
-    reward sections of a YAML file."""
+class Playable:
+    """What tgrf-eval and tgrf-render play: the env / reward of a run directory (and its trained policy), of a
+    pretrained policy (and its parameters), or of a YAML file (baseline robots only)."""
 
     env: EnvConfig
     reward: RewardConfig
     run_dir: pathlib.Path | None = None
-    config: TrainConfig | None = None  # the run's (or pretrained policy's) config
+    config: TrainConfig | None = None  # the run's (or pretrained policy's) config with the --set overrides
     pretrained: str | None = None  # a pretrained policy's name or directory
     params: dict | None = None  # its network parameters
+    trained: TrainConfig | None = None  # the config the policy was trained with (no overrides)
+
+    @property
+    def has_policy(self) -> bool:
+        return self.trained is not None
 
 
 def add_pretrained_arg(parser: argparse.ArgumentParser) -> None:
@@ -60,7 +68,7 @@ def add_pretrained_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def scenario(source: str | None, overrides: list[str], tool: str, pretrained: str | None = None) -> Scenario:
+def load_playable(source: str | None, overrides: list[str], tool: str, pretrained: str | None = None) -> Playable:
     """Resolve RUN_DIR|CONFIG (or a pretrained policy) plus `--set` (only env.* and reward.* apply); raises
     ConfigError. A tgrf-train config file is checked whole and its env / reward sections are played."""
     bad = [o for o in overrides if o.split(".", 1)[0] not in ("env", "reward")]
@@ -71,17 +79,17 @@ def scenario(source: str | None, overrides: list[str], tool: str, pretrained: st
             raise ConfigError(f"--pretrained plays its own config; give no RUN_DIR|CONFIG (got {source!r})")
         if bad:
             raise ConfigError(f"with --pretrained only env.* and reward.* can be overridden, not {bad}")
-        config, params, _ = pretrained_lib.load(pretrained)
-        config = TrainConfig.from_dict(apply_overrides(config.to_dict(), overrides))
-        return Scenario(config.env, config.reward, None, config, pretrained, params)
+        trained, params, _ = pretrained_lib.load(pretrained)
+        config = TrainConfig.from_dict(apply_overrides(trained.to_dict(), overrides))
+        return Playable(config.env, config.reward, None, config, pretrained, params, trained)
     if source is not None and pathlib.Path(source).is_dir():
         from tgrf_jax.train.run_dir import load_run_config
 
-        config = load_run_config(source)
+        trained = load_run_config(source)
         if bad:
             raise ConfigError(f"with a RUN_DIR only env.* and reward.* can be overridden, not {bad}")
-        config = TrainConfig.from_dict(apply_overrides(config.to_dict(), overrides))
-        return Scenario(config.env, config.reward, pathlib.Path(source), config)
+        config = TrainConfig.from_dict(apply_overrides(trained.to_dict(), overrides))
+        return Playable(config.env, config.reward, pathlib.Path(source), config, trained=trained)
     if bad:
         raise ConfigError(f"{tool} plays the env.* and reward.* settings; only those can be overridden, not {bad}")
     data = apply_overrides(load_yaml(source) if source else {}, overrides)
@@ -94,41 +102,62 @@ def scenario(source: str | None, overrides: list[str], tool: str, pretrained: st
         )
     if set(data) - {"env", "reward"}:
         config = TrainConfig.from_dict(data)  # a tgrf-train config: every section checked, env / reward played
-        return Scenario(config.env, config.reward)
-    return Scenario(EnvConfig.from_dict(data.get("env")), reward_config_from_dict(data.get("reward")))
+        return Playable(config.env, config.reward)
+    return Playable(EnvConfig.from_dict(data.get("env")), reward_config_from_dict(data.get("reward")))
 
 
-def check_observation_fits(scene: Scenario) -> None:
-    """With a RUN_DIR and env.* overrides: the trained network reads observations of the run's shapes, so an
-    override that changes them (env.num_humans, the predictor's horizon, ...) is refused by name before anything
-    compiles (shapes are traced, not computed)."""
-    if scene.run_dir is None:
+def check_policy_fits(playable: Playable) -> None:
+    """The trained policy's network against the env it is to play, before anything compiles (shapes are traced,
+    not computed; call it after `start`). Its parameter shapes follow from what the robot senses
+    (env.lidar_rays, the predictor and its horizon, with an MLP the crowd size, ...), so an override that changes
+    them is refused naming the trained values. With a RUN_DIR the observation's shapes must stay too."""
+    if not playable.has_policy or playable.trained.env == playable.env:
         return
     import jax
 
     from tgrf_jax.env import CrowdNavEnv
-    from tgrf_jax.train.run_dir import load_run_config
+    from tgrf_jax.policies import make_network_for
 
-    trained = load_run_config(scene.run_dir)
-    if trained.env == scene.env:
-        return
+    trained, played = playable.trained, playable.config
+    where = f"the policy in {str(playable.run_dir)!r}" if playable.run_dir else f"pretrained {playable.pretrained}"
+    changed = [
+        f.name for f in dataclasses.fields(EnvConfig) if getattr(trained.env, f.name) != getattr(played.env, f.name)
+    ]
 
-    def shapes(env_config):
-        obs = jax.eval_shape(lambda k: CrowdNavEnv(env_config, scene.reward).reset(k)[0], jax.random.key(0))
+    def obs_shapes(env: EnvConfig) -> dict:
+        obs = jax.eval_shape(lambda k: CrowdNavEnv(env, playable.reward).reset(k)[0], jax.random.key(0))
         return {path: leaf.shape for path, leaf in jax.tree_util.tree_flatten_with_path(obs)[0]}
 
-    before, after = shapes(trained.env), shapes(scene.env)
-    if before != after:
-        changed = [
-            f"env.{f}: {getattr(trained.env, f)!r} -> {getattr(scene.env, f)!r}"
-            for f in trained.env.__dataclass_fields__
-            if getattr(trained.env, f) != getattr(scene.env, f)
-        ]
+    if playable.run_dir is not None and obs_shapes(trained.env) != obs_shapes(played.env):
+        changes = "; ".join(f"env.{n}: {getattr(trained.env, n)!r} -> {getattr(played.env, n)!r}" for n in changed)
         raise ConfigError(
-            f"the policy in {str(scene.run_dir)!r} was trained on observations of other shapes than "
-            f"these overrides give ({'; '.join(changed)}); with a RUN_DIR only settings that keep "
-            "the observation's shapes can change (e.g. env.human_policy, env.dt, reward.*)"
+            f"{where} was trained on observations of other shapes than these overrides give ({changes}); with a "
+            "RUN_DIR only settings that keep the observation's shapes can change (e.g. env.human_policy, env.dt, "
+            "reward.*)"
         )
+
+    def param_shapes(env: EnvConfig) -> dict:
+        params = jax.eval_shape(make_network_for(dataclasses.replace(trained, env=env)).init, jax.random.PRNGKey(0))
+        return {jax.tree_util.keystr(p): leaf.shape for p, leaf in jax.tree_util.tree_flatten_with_path(params)[0]}
+
+    def shapes_change(name: str) -> bool:
+        try:
+            return param_shapes(dataclasses.replace(trained.env, **{name: getattr(played.env, name)})) != expected
+        except ConfigError:  # a value valid only together with another change
+            return True
+
+    expected = param_shapes(trained.env)
+    if param_shapes(played.env) != expected:
+        names = [n for n in changed if shapes_change(n)] or changed
+        raise ConfigError(
+            f"{where} was trained with {_settings(trained.env, names)}; these overrides make it "
+            f"{_settings(played.env, names)}, which changes the shapes of its network's parameters: only settings "
+            "that keep them can change (e.g. env.human_policy, env.dt, reward.*)"
+        )
+
+
+def _settings(env: EnvConfig, names: list[str]) -> str:
+    return ", ".join(f"env.{n} = {getattr(env, n)!r}" for n in names)
 
 
 def progress_line(message: str) -> None:
@@ -152,11 +181,55 @@ def error(tool: str, e: Exception, hint: str | None = None) -> int:
     return 2
 
 
-def checkpoint_error(tool: str, e: Exception, command: str) -> int:
+def checkpoint_error(tool: str, e: Exception, command: str | None) -> int:
     """`error` for a CheckpointError; where a damaged step has intact earlier ones, the hint is `command` followed
     by the latest of them."""
     intact = getattr(e, "intact", ())
-    return error(tool, e, f"the latest intact checkpoint: {command} {intact[-1]}" if intact else None)
+    return error(tool, e, f"the latest intact checkpoint: {command} {intact[-1]}" if intact and command else None)
+
+
+@dataclasses.dataclass
+class Recovery:
+    """What a tool's last words after a damaged checkpoint or an interruption tell the user to run next; the tool
+    fills it in as soon as it knows its directory."""
+
+    resume: str | None = None  # after an interruption, e.g. "resume with: tgrf-train --resume runs/x"
+    from_checkpoint: str | None = None  # a damaged checkpoint: this command, followed by the latest intact step
+
+
+def _checkpoint_error() -> tuple[type[Exception], ...]:
+    # storage.checkpoint imports orbax: only a process that loaded it can have raised its error
+    module = sys.modules.get("tgrf_jax.storage.checkpoint")
+    return (module.CheckpointError,) if module is not None else ()
+
+
+def command_line(
+    tool: str, bad_input: tuple[type[Exception], ...] = (ConfigError,)
+) -> Callable[[Callable[[list[str] | None, Recovery], int]], Callable[[list[str] | None], int]]:
+    """Decorator of a tool's `run(argv, recovery) -> exit status`, making its `main(argv=None)`, what every tgrf-*
+    command runs: bad input (`bad_input`; a damaged checkpoint) ends it with one line on stderr naming the problem
+    and exit status 2, never a traceback; an interruption (Ctrl-C, SIGTERM during training) with a line saying so,
+    and how to resume where `recovery` knows it, and exit status 130."""
+
+    def decorate(run: Callable[[list[str] | None, Recovery], int]) -> Callable[[list[str] | None], int]:
+        @functools.wraps(run)
+        def main(argv: list[str] | None = None) -> int:
+            recovery = Recovery()
+            try:
+                return run(argv, recovery)
+            except KeyboardInterrupt:
+                print(f"{tool}: interrupted" + (f"; {recovery.resume}" if recovery.resume else ""), file=sys.stderr)
+                return 130
+            except Exception as e:
+                if isinstance(e, _checkpoint_error()):
+                    return checkpoint_error(tool, e, recovery.from_checkpoint)
+                if isinstance(e, bad_input):
+                    return error(tool, e)
+                raise
+
+        return main
+
+    return decorate
 
 
 def check_jax() -> None:

@@ -6,6 +6,8 @@ import argparse
 import pathlib
 import sys
 
+from tgrf_jax.cli.common import Recovery, command_line
+from tgrf_jax.config import ConfigError
 from tgrf_jax.pedestrians import catalogue
 from tgrf_jax.pedestrians.recordings import DEFAULT_DT, FORMATS, RecordingError, RecordingSpec, load
 
@@ -102,7 +104,8 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+@command_line(TOOL, bad_input=(ConfigError, RecordingError))
+def main(argv: list[str] | None, recovery: Recovery) -> int:
     args = parser().parse_args(argv)
     if args.command == "fetch":
         return _fetch(args.dataset, args.dir)

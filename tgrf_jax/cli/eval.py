@@ -3,20 +3,22 @@
 from __future__ import annotations
 
 import argparse
+import pathlib
 import sys
 import time
 
 from tgrf_jax.cli.common import (
+    Playable,
+    Recovery,
     add_config_args,
     add_pretrained_arg,
     check_jax,
-    check_observation_fits,
+    check_policy_fits,
     check_seed,
     check_writable,
-    checkpoint_error,
+    command_line,
     episode_progress,
-    error,
-    scenario,
+    load_playable,
     start,
     write_json,
 )
@@ -26,9 +28,10 @@ from tgrf_jax.config import MAX_EPISODES, ConfigError
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tgrf-eval",
-        description="Evaluate a robot policy on N distinct episodes and print the paper's metrics table (docs/reference.md). "
-        "With a RUN_DIR (from tgrf-train) the trained policy is evaluated on the run's env/reward config "
-        "(plus any --policy baselines on the same scenario); otherwise the baselines on a YAML config.",
+        description="Evaluate a robot policy on N distinct episodes and print the paper's metrics table "
+        "(docs/reference.md). With a RUN_DIR (from tgrf-train) the trained policy is evaluated on the run's "
+        "env/reward config (plus any --policy baselines on the same scenario); otherwise the baselines on a YAML "
+        "config.",
     )
     add_config_args(
         p,
@@ -54,8 +57,10 @@ def parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="benchmark: play the policy (RUN_DIR, --pretrained, or the --policy baselines; default orca) "
         "on every scenario x 5, 10, 20, 30 humans, --episodes each with the fixed --seed, and write "
-        "DIR/suite.md, DIR/suite.csv and a thumbnail per scenario (docs/scenarios.md)",
+        "DIR/suite.md, DIR/suite.csv and a thumbnail per scenario (docs/scenarios.md); a DIR that holds an "
+        "earlier suite is refused unless --overwrite",
     )
+    p.add_argument("--overwrite", action="store_true", help="--suite DIR: replace the earlier suite in DIR")
     p.add_argument(
         "--all-metrics",
         action="store_true",
@@ -66,60 +71,74 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
+SUITE_FILES = ("suite.md", "suite.csv")  # what --suite writes besides its thumbnails
+
+
+@command_line("tgrf-eval")
+def main(argv: list[str] | None, recovery: Recovery) -> int:
     args = parser().parse_args(argv)
-    try:
-        check_jax()
-        if not 1 <= args.episodes <= MAX_EPISODES:
-            raise ConfigError(f"--episodes = {args.episodes} is out of range; allowed: 1 .. {MAX_EPISODES:,}")
-        check_seed(args.seed)
-        sc = scenario(args.config, args.overrides, "tgrf-eval", args.pretrained)
-        if args.step is not None and sc.run_dir is None:
-            raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
-        if args.out:
-            check_writable(args.out, "--out", directory=False)
-    except ConfigError as e:
-        return error("tgrf-eval", e)
+    check_jax()
+    if not 1 <= args.episodes <= MAX_EPISODES:
+        raise ConfigError(f"--episodes = {args.episodes} is out of range; allowed: 1 .. {MAX_EPISODES:,}")
+    check_seed(args.seed)
+    playable = load_playable(args.config, args.overrides, "tgrf-eval", args.pretrained)
+    if args.step is not None and playable.run_dir is None:
+        raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
+    if args.out:
+        check_writable(args.out, "--out", directory=False)
+    if args.overwrite and not args.suite:
+        raise ConfigError("--overwrite lets --suite DIR replace an earlier suite; no --suite given")
+    if args.suite:
+        check_suite_dir(args.suite, args.overwrite)
 
     start()
-    import jax
-
+    check_policy_fits(playable)
+    if playable.run_dir is not None:
+        suite = f" --suite {args.suite}" if args.suite else ""
+        recovery.from_checkpoint = f"tgrf-eval {playable.run_dir}{suite} --step"
     if args.suite:
-        return _suite(args, sc)
+        return _suite(args, playable)
+
+    import jax
 
     from tgrf_jax.evaluate import evaluate_params, evaluate_state, format_eval
 
-    if sc.params is not None:
-        print(
-            f"pretrained {sc.pretrained} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}",
-            flush=True,
-        )
+    platform = jax.devices()[0].platform
+    if playable.params is not None:
+        print(f"pretrained {playable.pretrained} on {platform}; {args.episodes} episodes, seed {args.seed}", flush=True)
+        _say_compiling()
         t0 = time.perf_counter()
         payload = evaluate_params(
-            sc.config, sc.params, args.episodes, args.seed, baselines=args.policy or (), progress=episode_progress
+            playable.config,
+            playable.params,
+            args.episodes,
+            args.seed,
+            baselines=args.policy or (),
+            progress=episode_progress,
         )
-        payload.update(pretrained=sc.pretrained)
-    elif sc.run_dir is not None:
-        state, status = _restore(sc, args.step, f"tgrf-eval {sc.run_dir} --step")
-        if state is None:
-            return status
+        payload.update(pretrained=playable.pretrained)
+    elif playable.run_dir is not None:
+        from tgrf_jax.train.run_dir import restore_run
+
+        state = restore_run(playable.run_dir, args.step)[1]
         print(
-            f"{sc.run_dir}: update {int(state.update)} on {jax.devices()[0].platform}; {args.episodes} episodes, "
-            f"seed {args.seed}",
+            f"{playable.run_dir}: update {int(state.update)} on {platform}; {args.episodes} episodes, seed {args.seed}",
             flush=True,
         )
+        _say_compiling()
         t0 = time.perf_counter()
         payload = evaluate_state(
-            sc.config, state, args.episodes, args.seed, baselines=args.policy or (), progress=episode_progress
+            playable.config, state, args.episodes, args.seed, baselines=args.policy or (), progress=episode_progress
         )
-        payload.update(run_dir=str(sc.run_dir), update=int(state.update))
+        payload.update(run_dir=str(playable.run_dir), update=int(state.update))
     else:
         from tgrf_jax.env import CrowdNavEnv
         from tgrf_jax.evaluate import evaluate
         from tgrf_jax.policies import baseline
 
-        env = CrowdNavEnv(sc.env, sc.reward)
-        print(f"{env} on {jax.devices()[0].platform}; {args.episodes} episodes, seed {args.seed}", flush=True)
+        env = CrowdNavEnv(playable.env, playable.reward)
+        print(f"{env} on {platform}; {args.episodes} episodes, seed {args.seed}", flush=True)
+        _say_compiling()
         t0 = time.perf_counter()
         results = {
             name: evaluate(
@@ -134,35 +153,35 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _restore(sc, step, resume_hint: str):
-    """(the run's training state, None), or (None, the exit status) after printing why it cannot be restored."""
-    from tgrf_jax.storage.checkpoint import CheckpointError
-    from tgrf_jax.train.run_dir import restore_run
-
-    try:
-        check_observation_fits(sc)
-        return restore_run(sc.run_dir, step)[1], None
-    except CheckpointError as e:
-        return None, checkpoint_error("tgrf-eval", e, resume_hint)
-    except ConfigError as e:
-        return None, error("tgrf-eval", e)
+def _say_compiling() -> None:
+    print("  compiling the evaluation program, then playing the episodes ...", flush=True)
 
 
-def _suite(args, sc) -> int:
+def check_suite_dir(path: str, overwrite: bool) -> None:
+    """--suite DIR must be writable, and hold no earlier suite unless --overwrite (raises ConfigError)."""
+    check_writable(path, "--suite", directory=True)
+    earlier = [name for name in SUITE_FILES if (pathlib.Path(path) / name).exists()]
+    if earlier and not overwrite:
+        raise ConfigError(
+            f"--suite {path!r} holds an earlier suite ({', '.join(earlier)}); give another directory, or "
+            "--overwrite to replace it"
+        )
+
+
+def _suite(args, playable: Playable) -> int:
     import dataclasses
 
     from tgrf_jax.cli.suite import SUITE_SIZES, run_suite
     from tgrf_jax.policies import baseline, make_network_for
     from tgrf_jax.policies.learned import LearnedPolicy
 
-    policies, capacity, config = {}, None, sc.config
-    if sc.params is not None or sc.run_dir is not None:
-        params = sc.params
+    policies, capacity, config = {}, None, playable.config
+    if playable.has_policy:
+        params = playable.params
         if params is None:
-            state, status = _restore(sc, args.step, f"tgrf-eval {sc.run_dir} --suite {args.suite} --step")
-            if state is None:
-                return status
-            params = state.params
+            from tgrf_jax.train.run_dir import restore_run
+
+            params = restore_run(playable.run_dir, args.step)[1].params
         # Attention over the humans (HH Attn, DS-RNN) has no parameter that depends on the number of human
         # slots, so the same weights play any crowd size; the MLP reads a fixed-size input.
         if config.network.name != "mlp":
@@ -172,7 +191,7 @@ def _suite(args, sc) -> int:
     else:
         from tgrf_jax.config import TrainConfig
 
-        config = TrainConfig(env=sc.env, reward=sc.reward)
+        config = TrainConfig(env=playable.env, reward=playable.reward)
     for name in args.policy or ([] if policies else ["orca"]):
         policies[name] = baseline(name)
     run_suite(

@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from tgrf_jax.cli.common import check_jax, checkpoint_error, error, start
+from tgrf_jax.cli.common import Recovery, check_jax, command_line, start
 from tgrf_jax.config import ConfigError
 
 FORMATS = ("onnx", "stablehlo")  # tgrf_jax.deploy.FORMATS, repeated so --help needs no JAX import
@@ -32,38 +32,31 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
+@command_line("tgrf-export")
+def main(argv: list[str] | None, recovery: Recovery) -> int:
     args = parser().parse_args(argv)
-    try:
-        check_jax()
-        if (args.run_dir is None) == (args.pretrained is None):
-            raise ConfigError("give exactly one of RUN_DIR and --pretrained NAME")
-        if args.step is not None and args.run_dir is None:
-            raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
-        from tgrf_jax.deploy.export import check_out_dir
+    check_jax()
+    if (args.run_dir is None) == (args.pretrained is None):
+        raise ConfigError("give exactly one of RUN_DIR and --pretrained NAME")
+    if args.step is not None and args.run_dir is None:
+        raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
+    from tgrf_jax.deploy.export import check_out_dir
 
-        check_out_dir(args.out)
-        formats = tuple(dict.fromkeys(args.formats or FORMATS))
-        if "onnx" in formats:
-            try:
-                import jax2onnx  # noqa: F401
-            except ImportError:
-                raise ConfigError(
-                    "ONNX export needs jax2onnx: pip install 'tgrf-jax[deploy]' (or --format stablehlo)"
-                ) from None
-    except ConfigError as e:
-        return error("tgrf-export", e)
+    check_out_dir(args.out)
+    formats = tuple(dict.fromkeys(args.formats or FORMATS))
+    if "onnx" in formats:
+        try:
+            import jax2onnx  # noqa: F401
+        except ImportError:
+            raise ConfigError(
+                "ONNX export needs jax2onnx: pip install 'tgrf-jax[deploy]' (or --format stablehlo)"
+            ) from None
 
     start()
     from tgrf_jax.deploy import export, load_source
-    from tgrf_jax.storage.checkpoint import CheckpointError
 
-    try:
-        source = load_source(args.run_dir or args.pretrained, step=args.step)
-    except CheckpointError as e:
-        return checkpoint_error("tgrf-export", e, f"tgrf-export {args.run_dir} --out {args.out} --step")
-    except ConfigError as e:
-        return error("tgrf-export", e)
+    recovery.from_checkpoint = f"tgrf-export {args.run_dir} --out {args.out} --step"
+    source = load_source(args.run_dir or args.pretrained, step=args.step)
     net, rays = source.config.network, source.config.env.lidar_rays
     lidar = f", {rays}-ray LiDAR (extra input 'lidar')" if rays else ""
     print(
@@ -72,10 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     t0 = time.perf_counter()
-    try:
-        out = export(source, args.out, formats)
-    except ConfigError as e:
-        return error("tgrf-export", e)
+    out = export(source, args.out, formats)
     files = ", ".join(sorted(p.name for p in out.iterdir()))
     print(f"wrote {out} in {time.perf_counter() - t0:.1f} s: {files}")
     return 0

@@ -21,14 +21,12 @@ import platform
 import subprocess
 import sys
 
-from tgrf_jax.cli.common import check_jax, check_writable
+from tgrf_jax.cli.common import Recovery, check_jax, check_writable, command_line
 from tgrf_jax.env.gst import weights as weights_lib
 from tgrf_jax.predictor import data as data_lib
 from tgrf_jax.predictor import train as train_lib
 from tgrf_jax.storage.checkpoint import CheckpointError
 from tgrf_jax.storage.files import write_atomic
-
-_ERRORS = (ValueError, CheckpointError)  # DatasetError and WeightsError are ValueErrors
 
 
 def _commit() -> str:
@@ -157,7 +155,9 @@ def _check_outputs(args) -> None:
         check_writable(args.out, "--out", directory=False)
 
 
-def run(argv=None) -> int:
+# DatasetError, WeightsError and TrainingError are ValueErrors; so is the ConfigError of a checked option
+@command_line("tgrf-predictor", bad_input=(ValueError,))
+def main(argv: list[str] | None, recovery: Recovery) -> int:
     args = _parser().parse_args(argv)
     _check_outputs(args)
     if args.command == "collect":
@@ -184,6 +184,14 @@ def run(argv=None) -> int:
             raise ValueError(
                 f"--from-step {args.from_step}: give a checkpoint (update >= 0) of an existing run, without --fresh"
             )
+        restart_flags = [
+            f for f, given in (("--fresh", args.fresh), ("--from-step", args.from_step is not None)) if given
+        ]
+        recovery.resume = (
+            "rerun the command"
+            + (f" without {' and '.join(restart_flags)}" if restart_flags else "")
+            + " to resume from its last checkpoint"
+        )
         try:
             params, meta = train_lib.train(
                 config,
@@ -236,13 +244,5 @@ def run(argv=None) -> int:
     return 0
 
 
-def main(argv=None):
-    try:
-        sys.exit(run(argv))
-    except _ERRORS as e:
-        print(f"tgrf-predictor: error: {e}", file=sys.stderr)
-        sys.exit(2)
-
-
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -11,14 +11,16 @@ import sys
 import time
 
 from tgrf_jax.cli.common import (
+    Playable,
+    Recovery,
     add_config_args,
     add_pretrained_arg,
     check_jax,
+    check_policy_fits,
     check_seed,
     check_writable,
-    checkpoint_error,
-    error,
-    scenario,
+    command_line,
+    load_playable,
     start,
 )
 from tgrf_jax.config import MAX_EPISODES, ConfigError
@@ -61,8 +63,8 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def check(args):
-    """Everything that can be checked without compiling; returns the scenario. Raises ConfigError."""
+def check(args) -> Playable:
+    """Everything that can be checked without JAX; returns what to play. Raises ConfigError."""
     from tgrf_jax.render.export import ffmpeg_path
 
     check_jax()
@@ -93,26 +95,25 @@ def check(args):
             )
     elif not args.policy and args.pretrained is None:
         raise ConfigError(f"give a RUN_DIR, --pretrained NAME or --policy {choices}")
-    sc = scenario(args.config, args.overrides, "tgrf-render", args.pretrained)
-    if args.step is not None and sc.run_dir is None:
+    playable = load_playable(args.config, args.overrides, "tgrf-render", args.pretrained)
+    if args.step is not None and playable.run_dir is None:
         raise ConfigError("--step selects a checkpoint of a RUN_DIR; no RUN_DIR given")
-    if args.rays and sc.env.lidar_rays == 0:
+    if args.rays and playable.env.lidar_rays == 0:
         raise ConfigError(
             "--rays draws the robot's LiDAR rays, but this env has no LiDAR (env.lidar_rays = 0); "
             "give it one, e.g. --set env.lidar_rays=72"
         )
-    return sc
+    return playable
 
 
-def main(argv: list[str] | None = None) -> int:
+@command_line("tgrf-render")
+def main(argv: list[str] | None, recovery: Recovery) -> int:
     """`tgrf-render`: returns the exit status (0 ok, 2 invalid input)."""
     args = parser().parse_args(argv)
-    try:
-        sc = check(args)
-    except ConfigError as e:
-        return error("tgrf-render", e)
+    playable = check(args)
 
     start()
+    check_policy_fits(playable)
     import jax
 
     from tgrf_jax.env import CrowdNavEnv
@@ -120,32 +121,31 @@ def main(argv: list[str] | None = None) -> int:
     from tgrf_jax.render import eval_key, ffmpeg_path, record_episodes
     from tgrf_jax.render.record import episodes_per_batch
 
-    env = CrowdNavEnv(sc.env, sc.reward)
+    env = CrowdNavEnv(playable.env, playable.reward)
     policies = []
-    if sc.params is not None:
+    if playable.params is not None:
         from tgrf_jax.policies import make_network_for
         from tgrf_jax.policies.learned import LearnedPolicy
 
         policies.append(
-            (f"pretrained {sc.pretrained}", "learned", LearnedPolicy(make_network_for(sc.config), sc.params))
+            (
+                f"pretrained {playable.pretrained}",
+                "learned",
+                LearnedPolicy(make_network_for(playable.config), playable.params),
+            )
         )
-    elif sc.run_dir is not None:
+    elif playable.run_dir is not None:
         from tgrf_jax.policies import make_network_for
         from tgrf_jax.policies.learned import LearnedPolicy
-        from tgrf_jax.storage.checkpoint import CheckpointError
         from tgrf_jax.train.run_dir import restore_run
 
-        try:
-            _, state = restore_run(sc.run_dir, args.step)
-        except CheckpointError as e:
-            return checkpoint_error("tgrf-render", e, f"tgrf-render {sc.run_dir} --out {args.out} --step")
-        except ValueError as e:
-            return error("tgrf-render", e)
+        recovery.from_checkpoint = f"tgrf-render {playable.run_dir} --out {args.out} --step"
+        _, state = restore_run(playable.run_dir, args.step)
         policies.append(
             (
                 f"learned (update {int(state.update)})",
                 "learned",
-                LearnedPolicy(make_network_for(sc.config), state.params),
+                LearnedPolicy(make_network_for(playable.config), state.params),
             )
         )
     for name in args.policy or ():

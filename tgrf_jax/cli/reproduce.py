@@ -6,12 +6,14 @@ import argparse
 import pathlib
 import sys
 
-from tgrf_jax.cli.common import check_jax, check_writable
+from tgrf_jax.cli.common import Recovery, check_jax, check_writable, command_line
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import spec as spec_lib
 
 
-def main(argv: list[str] | None = None) -> int:
+@command_line("tgrf-reproduce")
+def main(argv: list[str] | None, recovery: Recovery) -> int:
+    recovery.resume = "rerun the same command to resume"  # finished rows are skipped, a started one resumes
     parser = argparse.ArgumentParser(
         prog="tgrf-reproduce",
         description="Run an experiment of the paper (a list of tgrf-sweeps, one per row) and write its report "
@@ -54,63 +56,54 @@ def main(argv: list[str] | None = None) -> int:
 
     from tgrf_jax.experiments import report, runner
 
-    try:
-        if args.list:
-            for name in spec_lib.available():
-                exp = spec_lib.load(name)
-                print(f"{name}: {exp.title}")
-                for row in exp.rows:
-                    print(f"  {row.name}: {row.label}")
-            return 0
-        if not args.experiment:
-            raise ConfigError(f"name an experiment: {', '.join(spec_lib.available())}")
-        exp = spec_lib.load(args.experiment)
-        rows = None
-        if args.rows is not None:
-            rows = [r.strip() for r in args.rows.split(",")]
-            if not all(rows):
-                raise ConfigError(
-                    f"--rows {args.rows[:60]!r}: empty row name; give comma-separated names of "
-                    f"{exp.name}'s rows: {', '.join(r.name for r in exp.rows)}"
-                )
-        whole = exp.shrunk(steps=args.steps, seeds=args.seeds)  # the report always covers every row
-        exp = whole.shrunk(rows=rows)
-        out = pathlib.Path(args.out or pathlib.Path("runs") / "reproduce" / exp.name)
-        runner.check_out_dir(exp, out)
-        if not (args.print_plan or args.report_only):
-            check_jax()
-            check_writable(out, "--out", directory=True)
-        if args.export_pretrained and not args.print_plan:
-            check_writable(args.export_pretrained, "--export-pretrained", directory=True)
-        if args.print_plan:
+    if args.list:
+        for name in spec_lib.available():
+            exp = spec_lib.load(name)
+            print(f"{name}: {exp.title}")
             for row in exp.rows:
-                state = runner.row_state(out / row.name)
-                cmd = " ".join(
-                    ["tgrf-sweep"]
-                    + spec_lib.sweep_args(exp, row, args.layout or "auto")
-                    + ["--out", str(out / row.name)]
-                )
-                print(f"{row.name} [{state}]: {cmd}")
-            return 0
-        if args.report_only:
-            if not out.is_dir():
-                raise ConfigError(
-                    f"--out {str(out)!r} does not exist: no rows to report (tgrf-reproduce "
-                    f"{args.experiment} --out {out} trains them)"
-                )
-            for path in report.write(whole, out):
-                print(path)
-            if args.export_pretrained:
-                for path in runner.export_finished(exp, out, args.export_pretrained):
-                    print(f"exported {path}")
-            return 0
-        return runner.reproduce(exp, out, export_to=args.export_pretrained, report_exp=whole, layout=args.layout)
-    except ConfigError as e:
-        print(f"tgrf-reproduce: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("tgrf-reproduce: interrupted; rerun the same command to resume", file=sys.stderr)
-        return 130
+                print(f"  {row.name}: {row.label}")
+        return 0
+    if not args.experiment:
+        raise ConfigError(f"name an experiment: {', '.join(spec_lib.available())}")
+    exp = spec_lib.load(args.experiment)
+    rows = None
+    if args.rows is not None:
+        rows = [r.strip() for r in args.rows.split(",")]
+        if not all(rows):
+            raise ConfigError(
+                f"--rows {args.rows[:60]!r}: empty row name; give comma-separated names of "
+                f"{exp.name}'s rows: {', '.join(r.name for r in exp.rows)}"
+            )
+    whole = exp.shrunk(steps=args.steps, seeds=args.seeds)  # the report always covers every row
+    exp = whole.shrunk(rows=rows)
+    out = pathlib.Path(args.out or pathlib.Path("runs") / "reproduce" / exp.name)
+    runner.check_out_dir(exp, out)
+    if not (args.print_plan or args.report_only):
+        check_jax()
+        check_writable(out, "--out", directory=True)
+    if args.export_pretrained and not args.print_plan:
+        check_writable(args.export_pretrained, "--export-pretrained", directory=True)
+    if args.print_plan:
+        for row in exp.rows:
+            state = runner.row_state(out / row.name)
+            cmd = " ".join(
+                ["tgrf-sweep"] + spec_lib.sweep_args(exp, row, args.layout or "auto") + ["--out", str(out / row.name)]
+            )
+            print(f"{row.name} [{state}]: {cmd}")
+        return 0
+    if args.report_only:
+        if not out.is_dir():
+            raise ConfigError(
+                f"--out {str(out)!r} does not exist: no rows to report (tgrf-reproduce "
+                f"{args.experiment} --out {out} trains them)"
+            )
+        for path in report.write(whole, out):
+            print(path)
+        if args.export_pretrained:
+            for path in runner.export_finished(exp, out, args.export_pretrained):
+                print(f"exported {path}")
+        return 0
+    return runner.reproduce(exp, out, export_to=args.export_pretrained, report_exp=whole, layout=args.layout)
 
 
 if __name__ == "__main__":

@@ -80,6 +80,7 @@ def run_suite(
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     total, done = len(SCENARIOS) * len(played) * len(policies), 0
+    log("suite: compiling the evaluation program (one per policy, shared by every row), then playing the rows ...")
     t0 = time.perf_counter()
     for s, name in enumerate(SCENARIOS):
         weights = jnp.zeros(len(SCENARIOS), jnp.float32).at[s].set(1.0)

@@ -9,11 +9,11 @@ import pathlib
 import sys
 
 from tgrf_jax.cli.common import (
+    Recovery,
     add_config_args,
     check_jax,
     check_writable,
-    checkpoint_error,
-    error,
+    command_line,
     progress_line,
     start,
 )
@@ -111,7 +111,8 @@ def init_distributed(
         jax.distributed.initialize()
 
 
-def main(argv: list[str] | None = None) -> int:
+@command_line("tgrf-sweep")
+def main(argv: list[str] | None, recovery: Recovery) -> int:
     args = parser().parse_args(argv)
     if args.list_griddable:
         print("\n".join(griddable_fields()))
@@ -119,47 +120,37 @@ def main(argv: list[str] | None = None) -> int:
     from tgrf_jax.sweep.grid import SweepSpec, load_sweep
     from tgrf_jax.sweep.run import default_sweep_dir
 
-    try:
-        check_jax()
-        if args.from_step is not None and not args.resume:
+    check_jax()
+    if args.from_step is not None and not args.resume:
+        raise ConfigError("--from-step N continues a sweep from one of its checkpoints: it needs --resume SWEEP_DIR")
+    if args.from_step is not None and args.from_step < 0:
+        raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
+    if args.resume:
+        if args.config or args.grid or args.overrides or args.seeds or args.out:
             raise ConfigError(
-                "--from-step N continues a sweep from one of its checkpoints: it needs --resume SWEEP_DIR"
+                "--resume SWEEP_DIR takes no config file, --grid, --seeds, --set or --out (the "
+                "sweep's own sweep.yaml is used)"
             )
-        if args.from_step is not None and args.from_step < 0:
-            raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
-        if args.resume:
-            if args.config or args.grid or args.overrides or args.seeds or args.out:
-                raise ConfigError(
-                    "--resume SWEEP_DIR takes no config file, --grid, --seeds, --set or --out (the "
-                    "sweep's own sweep.yaml is used)"
-                )
-            spec = load_sweep(args.resume)
-        else:
-            spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides)  # layout: set below
-        distributed = bool(args.coordinator or args.distributed)
-        if distributed and (args.layout or spec.layout) == "sequential":
-            raise ConfigError("--layout sequential runs on one host; a multi-host sweep needs the batched layout")
-        if distributed and args.out is None and not args.resume:
-            raise ConfigError("a multi-host sweep needs --out (the same shared directory on every host)")
-        sweep_dir = pathlib.Path(args.resume or args.out or default_sweep_dir(spec.base_config))
-        if not args.print_plan:
-            check_writable(sweep_dir, "--resume" if args.resume else "--out", directory=True)
-    except ConfigError as e:
-        return error("tgrf-sweep", e)
+        spec = load_sweep(args.resume)
+    else:
+        spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides)  # layout: set below
+    distributed = bool(args.coordinator or args.distributed)
+    if distributed and (args.layout or spec.layout) == "sequential":
+        raise ConfigError("--layout sequential runs on one host; a multi-host sweep needs the batched layout")
+    if distributed and args.out is None and not args.resume:
+        raise ConfigError("a multi-host sweep needs --out (the same shared directory on every host)")
+    sweep_dir = pathlib.Path(args.resume or args.out or default_sweep_dir(spec.base_config))
     if args.print_plan:
         # "auto" is resolved once JAX knows its devices, which the plan does not start
         print(dataclasses.replace(spec, layout=args.layout or spec.layout).describe())
         return 0
+    check_writable(sweep_dir, "--resume" if args.resume else "--out", directory=True)
 
     # One CPU device per core: the runs split over the devices, and XLA:CPU runs several programs side by side
     # far better than it spreads one over the cores (a user's own count wins).
     start(devices=len(os.sched_getaffinity(0)))
     if distributed:
-        try:
-            init_distributed(args.coordinator, args.num_processes, args.process_id)
-        except ConfigError as e:
-            return error("tgrf-sweep", e)
-    from tgrf_jax.storage.checkpoint import CheckpointError
+        init_distributed(args.coordinator, args.num_processes, args.process_id)
     from tgrf_jax.sweep.run import run_sweep
 
     layout = args.layout
@@ -170,24 +161,18 @@ def main(argv: list[str] | None = None) -> int:
     if not args.resume:
         spec = dataclasses.replace(spec, layout=layout or spec.layout)
 
-    try:
-        run_sweep(
-            None if args.resume else spec,
-            sweep_dir,
-            resume=bool(args.resume),
-            from_step=args.from_step,
-            log=progress_line,
-            num_devices=args.devices,
-            export_checkpoints=not args.no_run_checkpoints,
-            layout=layout if args.resume else None,
-        )
-    except CheckpointError as e:
-        return checkpoint_error("tgrf-sweep", e, f"tgrf-sweep --resume {sweep_dir} --from-step")
-    except ConfigError as e:
-        return error("tgrf-sweep", e)
-    except KeyboardInterrupt:
-        print(f"tgrf-sweep: interrupted; resume with: tgrf-sweep --resume {sweep_dir}", file=sys.stderr)
-        return 130
+    recovery.resume = f"resume with: tgrf-sweep --resume {sweep_dir}"
+    recovery.from_checkpoint = f"tgrf-sweep --resume {sweep_dir} --from-step"
+    run_sweep(
+        None if args.resume else spec,
+        sweep_dir,
+        resume=bool(args.resume),
+        from_step=args.from_step,
+        log=progress_line,
+        num_devices=args.devices,
+        export_checkpoints=not args.no_run_checkpoints,
+        layout=layout if args.resume else None,
+    )
     return 0
 
 

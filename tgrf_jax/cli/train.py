@@ -7,11 +7,11 @@ import pathlib
 import sys
 
 from tgrf_jax.cli.common import (
+    Recovery,
     add_config_args,
     check_jax,
     check_writable,
-    checkpoint_error,
-    error,
+    command_line,
     progress_line,
     start,
     train_config,
@@ -43,46 +43,36 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
+@command_line("tgrf-train")
+def main(argv: list[str] | None, recovery: Recovery) -> int:
     args = parser().parse_args(argv)
-    from tgrf_jax.storage.checkpoint import CheckpointError
     from tgrf_jax.train.run_dir import default_run_dir, load_run_config
 
-    try:
-        check_jax()
-        if args.from_step is not None and not args.resume:
-            raise ConfigError("--from-step N continues a run from one of its checkpoints: it needs --resume RUN_DIR")
-        if args.from_step is not None and args.from_step < 0:
-            raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
-        if args.resume:
-            if args.config or args.overrides or args.out_dir:
-                raise ConfigError(
-                    "--resume RUN_DIR takes no config file, --set or --out-dir (the run's own config.yaml is used)"
-                )
-            config = load_run_config(args.resume)
-        else:
-            config = train_config(args.config, args.overrides)
-        run_dir = pathlib.Path(args.resume or args.out_dir or default_run_dir(config))
-        if not args.print_config:
-            check_writable(run_dir, "--resume" if args.resume else "--out-dir", directory=True)
-    except ConfigError as e:
-        return error("tgrf-train", e)
+    check_jax()
+    if args.from_step is not None and not args.resume:
+        raise ConfigError("--from-step N continues a run from one of its checkpoints: it needs --resume RUN_DIR")
+    if args.from_step is not None and args.from_step < 0:
+        raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
+    if args.resume:
+        if args.config or args.overrides or args.out_dir:
+            raise ConfigError(
+                "--resume RUN_DIR takes no config file, --set or --out-dir (the run's own config.yaml is used)"
+            )
+        config = load_run_config(args.resume)
+    else:
+        config = train_config(args.config, args.overrides)
+    run_dir = pathlib.Path(args.resume or args.out_dir or default_run_dir(config))
     if args.print_config:
         print(config.to_yaml(), end="")
         return 0
+    check_writable(run_dir, "--resume" if args.resume else "--out-dir", directory=True)
 
     start(devices=config.ppo.num_shards, say_cache=True)  # one CPU device per env shard
     from tgrf_jax.train.run_dir import train_run
 
-    try:
-        train_run(config, run_dir, resume=bool(args.resume), from_step=args.from_step, log=progress_line)
-    except CheckpointError as e:
-        return checkpoint_error("tgrf-train", e, f"tgrf-train --resume {run_dir} --from-step")
-    except ConfigError as e:
-        return error("tgrf-train", e)
-    except KeyboardInterrupt:
-        print(f"tgrf-train: interrupted; resume with: tgrf-train --resume {run_dir}", file=sys.stderr)
-        return 130
+    recovery.resume = f"resume with: tgrf-train --resume {run_dir}"
+    recovery.from_checkpoint = f"tgrf-train --resume {run_dir} --from-step"
+    train_run(config, run_dir, resume=bool(args.resume), from_step=args.from_step, log=progress_line)
     return 0
 
 

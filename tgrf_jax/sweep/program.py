@@ -1,8 +1,12 @@
 """A sweep's compiled program and its placement: G runs with a leading run axis split over D devices.
 
     state = stack([jit(trainer.init)(key_i, hparams_i) for each run])   # tgrf-train's init, run by run
-    chunk = jit(shard_map(vmap(trainer.run_updates)))   # n updates of all G runs, one compiled program
-                                                        # (a device holding one run: run_updates unbatched)
+    chunk = jit(shard_map(vmap(trainer.run_chunk)))     # n updates of all G runs, one compiled program
+                                                        # (a device holding one run: run_chunk unbatched)
+
+`BatchedTrainer` holds those compiled pieces for one static configuration and one device mesh (shared by the
+sweeps of a process); the outer loop's `Program`s of a sweep are `BatchedProgram` (the runs of one sweep on a
+`BatchedTrainer`) and `SequentialProgram` (the runs in turn, each through tgrf-train's `SoloProgram`).
 
 The run axis is split over all devices (a `jax.sharding.Mesh` with one axis, "runs"; G is padded to a multiple
 of the device count with copies of the last run, and the padding is dropped from every result), across hosts too
@@ -16,7 +20,6 @@ sweep and the tgrf-train run, a resumed sweep and an uninterrupted one, and equa
 from __future__ import annotations
 
 import dataclasses
-import time
 from typing import Any
 
 import numpy as np
@@ -94,13 +97,13 @@ def _per_run(f, n_batched: int | None = None):
     return g
 
 
-class SweepProgram:
-    """The compiled pieces of a sweep for one static configuration and one device mesh.
+class BatchedTrainer:
+    """A `Trainer`'s compiled pieces for runs along a leading run axis split over one device mesh.
 
-    `chunk(state, n)` and `eval_stats(params, env_params, key, n_episodes)` take and return pytrees with a leading
-    run axis split over the mesh; inside `shard_map` each device vmaps over its own runs (or, holding one run, runs
-    the unbatched function), so the runs never communicate. `init_one(key, hparams)` is tgrf-train's single-run
-    init.
+    `run_chunk(state, n)` (once `compile`d for the state's run count) and `eval_stats(params, env_params, key,
+    n_episodes)` take and return pytrees with a leading run axis split over the mesh; inside `shard_map` each
+    device vmaps over its own runs (or, holding one run, runs the unbatched function), so the runs never
+    communicate. `init_one(key, hparams)` is tgrf-train's single-run init.
     """
 
     def __init__(self, config: TrainConfig, devices):
@@ -111,15 +114,14 @@ class SweepProgram:
         from tgrf_jax.env import CrowdNavEnv
         from tgrf_jax.evaluate import run_episodes
         from tgrf_jax.policies.learned import LearnedPolicy
-        from tgrf_jax.train.ppo import make_train
+        from tgrf_jax.train.ppo import make_trainer
 
         self.config = config
         self.devices = tuple(devices)
         self.mesh = Mesh(np.array(self.devices), (AXIS,))
         self.sharding = NamedSharding(self.mesh, P(AXIS))
         # the run axis takes the devices; a run's env shards (ppo.num_shards) are vmapped on its device
-        self.train = make_train(config, devices=None)
-        trainer = self.train.trainer
+        trainer = make_trainer(config, devices=None)
         self.trainer = trainer
         spec = P(AXIS)
 
@@ -134,12 +136,12 @@ class SweepProgram:
         # initialisers) can deadlock at execution, every worker thread idle.
         self.init_one = jax.jit(trainer.init)
 
-        def chunk(ts, n_updates):
-            return smap(_per_run(trainer.run_updates, n_batched=1), 1, replicated_last=True)(ts, n_updates)
+        def run_chunk(ts, n_updates):
+            return smap(_per_run(trainer.run_chunk, n_batched=1), 1, replicated_last=True)(ts, n_updates)
 
         # out_shardings pins every output leaf to the run axis: zero-element leaves (no obstacle slots, no LiDAR)
         # would otherwise come back replicated, and the compiled chunk refuses them as its next input
-        self.chunk = jax.jit(chunk, donate_argnums=0, out_shardings=self.sharding)
+        self.jit_run_chunk = jax.jit(run_chunk, donate_argnums=0, out_shardings=self.sharding)
         net = trainer.net
         self.eval_env = CrowdNavEnv(dataclasses.replace(config.env, track_future_intrusion=True), config.reward)
 
@@ -150,21 +152,24 @@ class SweepProgram:
             return smap(_per_run(one, n_batched=2), 2, replicated_last=True)(params, env_params, key)
 
         self.eval_stats = jax.jit(eval_stats, static_argnums=3)
-        self.compiled: dict[int, Any] = {}  # G_pad -> AOT-compiled chunk(state, n_updates)
+        self.compiled: dict[int, Any] = {}  # G_pad -> jit_run_chunk compiled ahead of time (count traced)
 
-    def compiled_chunk(self, state):
-        """(compiled chunk at this batch size, taking the update count as an argument; compile seconds or None
-        if cached)."""
-        key = int(np.shape(state.update)[0])
-        if key in self.compiled:
-            return self.compiled[key], None
-        c0 = time.perf_counter()
-        compiled = self.chunk.lower(state, np.int32(1)).compile()
-        self.compiled[key] = lambda state, n: compiled(state, np.int32(n))
-        return self.compiled[key], time.perf_counter() - c0
+    def is_compiled(self, state) -> bool:
+        return _padded_runs(state) in self.compiled
+
+    def compile(self, state) -> None:
+        self.compiled[_padded_runs(state)] = self.jit_run_chunk.lower(state, np.int32(1)).compile()
+
+    def run_chunk(self, state, n_updates: int):
+        return self.compiled[_padded_runs(state)](state, np.int32(n_updates))
 
 
-_PROGRAMS: dict[tuple, SweepProgram] = {}
+def _padded_runs(state) -> int:
+    """The length of a stacked state's run axis: the batch size a chunk is compiled for."""
+    return int(np.shape(state.update)[0])
+
+
+_TRAINERS: dict[tuple, BatchedTrainer] = {}
 
 
 def _static_signature(config: TrainConfig) -> str:
@@ -177,12 +182,12 @@ def _static_signature(config: TrainConfig) -> str:
     return yaml.safe_dump(data, sort_keys=True)
 
 
-def get_program(config: TrainConfig, devices) -> SweepProgram:
-    """One SweepProgram per (static config, devices) per process (repeated sweeps reuse compilations)."""
+def batched_trainer(config: TrainConfig, devices) -> BatchedTrainer:
+    """One BatchedTrainer per (static config, devices) per process (repeated sweeps reuse compilations)."""
     key = (_static_signature(config), tuple(d.id for d in devices))
-    if key not in _PROGRAMS:
-        _PROGRAMS[key] = SweepProgram(config, devices)
-    return _PROGRAMS[key]
+    if key not in _TRAINERS:
+        _TRAINERS[key] = BatchedTrainer(config, devices)
+    return _TRAINERS[key]
 
 
 def barrier(name: str) -> None:
@@ -195,7 +200,7 @@ def barrier(name: str) -> None:
         multihost_utils.sync_global_devices(name)
 
 
-def evaluate_runs(program: SweepProgram, runs, params, g_pad: int, episodes: int, seed: int) -> list[dict]:
+def evaluate_runs(batched: BatchedTrainer, runs, params, g_pad: int, episodes: int, seed: int) -> list[dict]:
     """The final evaluation of every run in one batched program: per run the same episodes (keys) and env
     parameters as `tgrf_jax.evaluate.evaluate_state` use for that run alone."""
     import jax
@@ -204,9 +209,9 @@ def evaluate_runs(program: SweepProgram, runs, params, g_pad: int, episodes: int
     from tgrf_jax.evaluate import summarize
 
     envs = [CrowdNavEnv(dataclasses.replace(r.config.env, track_future_intrusion=True), r.config.reward) for r in runs]
-    env_params = _place(_pad(_stack([e.default_params for e in envs]), g_pad), program.sharding)
+    env_params = _place(_pad(_stack([e.default_params for e in envs]), g_pad), batched.sharding)
     key = jax.random.fold_in(jax.random.key(seed), 0)  # `evaluate` with one batch of all episodes
-    stats = _host(program.eval_stats(params, env_params, key, episodes))
+    stats = _host(batched.eval_stats(params, env_params, key, episodes))
     out = []
     for i, r in enumerate(runs):
         res = summarize(_take(stats, i))
@@ -257,9 +262,10 @@ def _restore_stacked(checkpointer, trainer, keys, hparams, step: int):
     return host_state, updates[0]
 
 
-class SweepBatch:
-    """The runner's `Program` for the runs of one sweep: per run the traced hyper-parameters and key that
-    tgrf-train derives from that run's config, stacked, padded and placed on the program's mesh."""
+class BatchedProgram:
+    """The outer loop's `Program` for the runs of one sweep on a `BatchedTrainer`: per run the traced
+    hyper-parameters and key that tgrf-train derives from that run's config, stacked, padded and placed on the
+    trainer's mesh."""
 
     def __init__(self, runs, devices):
         self.runs = runs
@@ -268,24 +274,30 @@ class SweepBatch:
         self.num_devices = D = len(devices)
         self.g_pad = -(-G // D) * D
         self.hparams, self.keys = _run_inputs(runs)
-        self.program = get_program(configs[0], devices)
+        self.batched = batched_trainer(configs[0], devices)
         self.config = configs[0]
-        self.num_updates = self.program.trainer.num_updates
+        self.num_updates = self.batched.trainer.num_updates
         self.batch_size = self.config.ppo.batch_size
 
     def _placed(self, host_state):
-        return _place(_pad(host_state, self.g_pad), self.program.sharding)
+        return _place(_pad(host_state, self.g_pad), self.batched.sharding)
 
     def init(self):
-        init = self.program.init_one
+        init = self.batched.init_one
         return self._placed(_stack([_host(init(self.keys[i], _take(self.hparams, i))) for i in range(self.num_runs)]))
 
     def restore(self, checkpointer, step: int):
-        host_state, update = _restore_stacked(checkpointer, self.program.trainer, self.keys, self.hparams, step)
+        host_state, update = _restore_stacked(checkpointer, self.batched.trainer, self.keys, self.hparams, step)
         return self._placed(host_state), update
 
-    def compiled_chunk(self, state):
-        return self.program.compiled_chunk(state)
+    def is_compiled(self, state) -> bool:
+        return self.batched.is_compiled(state)
+
+    def compile(self, state) -> None:
+        self.batched.compile(state)
+
+    def run_chunk(self, state, n_updates: int):
+        return self.batched.run_chunk(state, n_updates)
 
     def run_metrics(self, metrics) -> list[dict]:
         metrics = _host(metrics)
@@ -295,24 +307,24 @@ class SweepBatch:
         return _take(_host(state), slice(0, self.num_runs))
 
     def evaluate(self, state, episodes: int, seed: int) -> list[dict]:
-        return evaluate_runs(self.program, self.runs, state.params, self.g_pad, episodes, seed)
+        return evaluate_runs(self.batched, self.runs, state.params, self.g_pad, episodes, seed)
 
     def describe(self, state) -> str:
         import jax
 
         c, p = self.config, self.config.ppo
-        n_params = self.program.trainer.net.num_params(_take(_host(state.params), 0))
+        n_params = self.batched.trainer.net.num_params(_take(_host(state.params), 0))
         pad = f", padded to {self.g_pad}" if self.g_pad != self.num_runs else ""
         return (
             f"{self.num_runs} runs{pad} on {self.num_devices} {jax.devices()[0].platform} device(s), "
-            f"{self.g_pad // self.num_devices} run(s) per device | {self.program.trainer.env} | "
+            f"{self.g_pad // self.num_devices} run(s) per device | {self.batched.trainer.env} | "
             f"{c.network.name}/{c.network.size} ({n_params:,} params) | {p.num_envs} envs x {p.num_steps} "
             f"steps, {self.num_updates} updates = {self.num_updates * p.batch_size:,} env steps per run"
         )
 
 
-class SequentialBatch:
-    """The runner's `Program` for a sweep whose runs take turns: each chunk trains every run in turn through
+class SequentialProgram:
+    """The outer loop's `Program` for a sweep whose runs take turns: each chunk trains every run in turn through
     tgrf-train's own compiled chunk, with that run's env shards on the devices as tgrf-train places them. One
     program for all runs (their hyper-parameters are traced), and every run is bit-identical to its tgrf-train
     run. On CPUs it trains large configs faster than the batched layout (docs/benchmarks.md); its checkpoints
@@ -334,25 +346,26 @@ class SequentialBatch:
         on_devices = len(devices) >= shards > 1
         self.solo = SoloProgram(self.config, list(devices)[:shards] if on_devices else None)
         self.num_devices = shards if on_devices else 1
-        self.train = self.solo.train
+        self.trainer = self.solo.trainer
         self.num_updates = self.solo.num_updates
         self.batch_size = self.solo.batch_size
 
     def init(self):
-        return [self.train.init(self.keys[i], _take(self.hparams, i)) for i in range(self.num_runs)]
+        return [self.trainer.jit_init(self.keys[i], _take(self.hparams, i)) for i in range(self.num_runs)]
 
     def restore(self, checkpointer, step: int):
-        host_state, update = _restore_stacked(checkpointer, self.train.trainer, self.keys, self.hparams, step)
-        return [self.train.place(_take(host_state, i)) for i in range(self.num_runs)], update
+        host_state, update = _restore_stacked(checkpointer, self.trainer, self.keys, self.hparams, step)
+        return [self.trainer.place(_take(host_state, i)) for i in range(self.num_runs)], update
 
-    def compiled_chunk(self, states):
-        fn, compile_s = self.solo.compiled_chunk(states[0])
+    def is_compiled(self, states) -> bool:
+        return self.solo.is_compiled(states[0])
 
-        def each(states, n):
-            out = [fn(s, n) for s in states]
-            return [o[0] for o in out], [o[1] for o in out]
+    def compile(self, states) -> None:
+        self.solo.compile(states[0])
 
-        return each, compile_s
+    def run_chunk(self, states, n_updates: int):
+        out = [self.solo.run_chunk(s, n_updates) for s in states]
+        return [o[0] for o in out], [o[1] for o in out]
 
     def run_metrics(self, metrics) -> list[dict]:
         return [self.solo.run_metrics(m)[0] for m in metrics]
@@ -363,7 +376,7 @@ class SequentialBatch:
     def evaluate(self, states, episodes: int, seed: int) -> list[dict]:
         from tgrf_jax.evaluate import evaluate_state
 
-        net = self.train.trainer.net  # one compiled evaluation for every run
+        net = self.trainer.net  # one compiled evaluation for every run
         return [evaluate_state(r.config, s, episodes, seed, net=net) for r, s in zip(self.runs, states)]
 
     def describe(self, states) -> str:

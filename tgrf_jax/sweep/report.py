@@ -12,8 +12,8 @@ import numpy as np
 
 from tgrf_jax.sweep.grid import GridAxis, SweepSpec, _fmt_value
 from tgrf_jax.train.curves import plot_curves, read_curve
+from tgrf_jax.train.directory import EVAL_CURVES_FILE, METRICS_FILE
 
-METRICS_FILE = "metrics.csv"
 EVALS_FILE = "evals.csv"
 SUMMARY_CSV = "summary.csv"
 SUMMARY_MD = "summary.md"
@@ -177,7 +177,7 @@ def plot_sweep(sweep_dir, spec: SweepSpec, summary: list[dict]) -> list[pathlib.
         out.append(plot_heatmap(sweep_dir / HEATMAP_FILE, spec, summary, multi[0], multi[1], metrics))
     elif len(multi) == 1:
         out.append(plot_grid_metrics(sweep_dir / GRID_PLOT_FILE, spec, summary, multi[0], metrics))
-    curves = read_curve(sweep_dir / "eval_curves.csv")
+    curves = read_curve(sweep_dir / EVAL_CURVES_FILE)
     if curves:
         groups: dict[str, dict[str, list[dict]]] = {}
         for r in spec.runs():

@@ -1,4 +1,5 @@
-"""`run_sweep`: the runs of a `SweepSpec` trained together by the runner (`tgrf_jax.train.outer_loop`).
+"""`run_sweep`: the runs of a `SweepSpec` trained together by the outer loop (`tgrf_jax.train.outer_loop`), in a
+`RunDirectory` (`tgrf_jax.train.directory`) whose root is the sweep directory.
 
 Sweep directory:
     sweep.yaml             the grid: axes, seeds, base config, and the run list (name, grid point, seed, values)
@@ -38,28 +39,17 @@ from tgrf_jax.sweep.grid import (
     check_layout,
     load_sweep,
 )
-from tgrf_jax.sweep.program import SequentialBatch, SweepBatch, barrier
+from tgrf_jax.sweep.program import BatchedProgram, SequentialProgram, barrier
 from tgrf_jax.sweep.report import (
     RUNS_DIR,
     format_summary_markdown,
     plot_sweep,
     write_results,
 )
-from tgrf_jax.train.curves import CURVE_FIELDS, EVAL_CURVE_CSV, PeriodicEvaluation
-from tgrf_jax.train.outer_loop import train_runs
-from tgrf_jax.train.progress import (
-    CSV_FIELDS,
-    CsvWriter,
-    LogFile,
-    ProgressPrinter,
-    run_rows,
-)
+from tgrf_jax.train.directory import CHECKPOINT_DIR, RunDirectory
+from tgrf_jax.train.outer_loop import train_program
 
 CONFIG_FILE = "config.yaml"
-METRICS_FILE = "metrics.csv"
-CHECKPOINT_DIR = "checkpoints"
-LOG_FILE = "progress.log"
-CURVES_FILE = "eval_curves.csv"
 
 
 @dataclasses.dataclass
@@ -210,99 +200,49 @@ def _run_sweep(
         write_atomic(sweep_dir / SWEEP_FILE, yaml.safe_dump(spec.to_dict(), sort_keys=False))
     barrier("tgrf_sweep_written")
 
-    say = LogFile(sweep_dir / LOG_FILE, log, enabled=main)
-    if switched_from is not None:
-        say(
-            f"layout switched from {switched_from} to {spec.layout} (recorded in {SWEEP_FILE}): from here the runs "
-            f"equal an unswitched resume up to float rounding, not bit for bit"
-        )
-    program = (SequentialBatch if spec.layout == "sequential" else SweepBatch)(runs, devices)
+    program = (SequentialProgram if spec.layout == "sequential" else BatchedProgram)(runs, devices)
     run_cfg = runs[0].config.run
-    ckpt = Checkpointer(
-        ckpt_dir, keep=run_cfg.keep_checkpoints, create=True
-    )  # a run stopped before its first checkpoint has none yet
-    say(f"sweep of {len(runs)} runs ({len(spec.points())} grid points x {len(spec.seeds)} seeds)")
-    for a in spec.axes:
-        say(f"  grid {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")
-    say(f"  seeds: {', '.join(map(str, spec.seeds))}")
-    say("  progress: steps per run; steps/s, returns and outcome rates over all runs together")
-    writers = []
-    if main:  # process 0 writes the files
-        long_fields = ["run", "point", "seed"] + [a.name for a in spec.axes] + list(CSV_FIELDS)
-        columns = [dict(run=r.name, point=r.point, seed=r.seed, **r.values) for r in runs]
-        writers.append(
-            CsvWriter(
-                sweep_dir / METRICS_FILE, lambda m: [dict(row, **c) for row, c in zip(m.runs, columns)], long_fields
+    columns = [dict(run=r.name, point=r.point, seed=r.seed, **r.values) for r in runs]
+    with RunDirectory.open(
+        sweep_dir, program, run_cfg, run_dirs=run_dirs, columns=columns, write=main, log=log, where="sweep dir"
+    ) as directory:
+        say = directory.say
+        if switched_from is not None:
+            say(
+                f"layout switched from {switched_from} to {spec.layout} (recorded in {SWEEP_FILE}): from here the "
+                f"runs equal an unswitched resume up to float rounding, not bit for bit"
             )
+        say(f"sweep of {len(runs)} runs ({len(spec.points())} grid points x {len(spec.seeds)} seeds)")
+        for a in spec.axes:
+            say(f"  grid {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")
+        say(f"  seeds: {', '.join(map(str, spec.seeds))}")
+        say("  progress: steps per run; steps/s, returns and outcome rates over all runs together")
+        out = train_program(
+            program, directory, run_cfg, resume=resume, from_step=from_step, stop_after_updates=stop_after_updates
         )
-        writers += [CsvWriter(d / METRICS_FILE, run_rows(i)) for i, d in enumerate(run_dirs)]
-        writers.append(ProgressPrinter(say))
-    curve_writers, state_fns = [], []
-    if run_cfg.eval_every:
-        if main:
-            curve_fields = ["run", "point", "seed"] + [a.name for a in spec.axes] + list(CURVE_FIELDS)
-            curve_writers.append(
-                CsvWriter(
-                    sweep_dir / CURVES_FILE,
-                    lambda rows: [dict(row, **c) for row, c in zip(rows, columns)],
-                    curve_fields,
-                    every_chunk=False,
-                )
-            )
-            curve_writers += [
-                CsvWriter(d / EVAL_CURVE_CSV, lambda rows, i=i: rows[i : i + 1], CURVE_FIELDS, every_chunk=False)
-                for i, d in enumerate(run_dirs)
-            ]
-        state_fns.append(
-            PeriodicEvaluation(
-                program, run_cfg.eval_every, run_cfg.curve_episodes, run_cfg.eval_seed, curve_writers, say
-            )
+        host_state = program.host_state(out.state)
+        result = SweepResult(
+            sweep_dir,
+            spec,
+            host_state,
+            out.updates,
+            out.train_seconds,
+            program.num_devices,
+            out.evals,
+            out.compiled_chunks,
         )
-    try:
-        out = train_runs(
-            program,
-            ckpt,
-            run_cfg,
-            resume=resume,
-            from_step=from_step,
-            progress_fns=writers,
-            state_fns=state_fns,
-            cut_every=[run_cfg.eval_every] if state_fns else [],
-            run_dirs=run_dirs,
-            write_evals=main,
-            say=say,
-            stop_after_updates=stop_after_updates,
-        )
-    finally:
-        for w in writers + curve_writers:
-            getattr(w, "close", lambda: None)()
-        ckpt.close()
-
-    host_state = program.host_state(out.state)
-    result = SweepResult(
-        sweep_dir, spec, host_state, out.updates, out.train_seconds, program.num_devices, out.evals, out.compiled_chunks
-    )
-    if out.updates == program.num_updates:
-        if export_checkpoints:  # so that tgrf-eval / tgrf-render work on runs/<name>
-            for i, d in enumerate(run_dirs):
-                export_checkpoint(
-                    d / CHECKPOINT_DIR,
-                    out.updates,
-                    jax.tree_util.tree_map(lambda x: x[i], host_state),
-                    run_cfg.keep_checkpoints,
-                )
-        if main:
-            rows = write_results(sweep_dir, spec, out.evals)
-            say(format_summary_markdown(spec, rows))
-            try:
-                plot_sweep(sweep_dir, spec, rows)
-            except Exception as e:  # a plotting failure must not lose a finished sweep
-                say(f"warning: could not plot: {type(e).__name__}: {e}")
-        G, batch, trained = len(runs), program.batch_size, out.updates - out.start
-        say(
-            f"done: {G} runs x {out.updates} updates = {G * out.updates * batch:,} env steps; this process trained "
-            f"{trained} updates in {out.train_seconds:.1f} s ({G * trained * batch / max(out.train_seconds, 1e-9):,.0f}"
-            f" steps/s over all runs, compilation excluded); sweep dir {sweep_dir}"
-        )
-    say.close()
+        if out.updates == program.num_updates:
+            if export_checkpoints:  # so that tgrf-eval / tgrf-render work on runs/<name>
+                for i, d in enumerate(run_dirs):
+                    export_checkpoint(
+                        d / CHECKPOINT_DIR,
+                        out.updates,
+                        jax.tree_util.tree_map(lambda x, i=i: x[i], host_state),
+                        run_cfg.keep_checkpoints,
+                    )
+            if main:
+                rows = write_results(sweep_dir, spec, out.evals)
+                say(format_summary_markdown(spec, rows))
+                directory.plot(lambda: plot_sweep(sweep_dir, spec, rows))
+            directory.done(out, program)
     return result

@@ -104,7 +104,7 @@ def plot_curves(groups: dict[str, list[list[dict]]], png_path, title: str = "") 
             continue
         n = min(len(c) for c in curves)
         steps = np.array([r["env_steps"] for r in curves[0][:n]])
-        for ax, (key, name, scale) in zip(axes, PANELS):
+        for ax, (key, _name, scale) in zip(axes, PANELS):
             values = np.array([[r[key] * scale for r in c[:n]] for c in curves])
             mean = np.nanmean(values, axis=0)
             ax.plot(steps, mean, color=f"C{i}", label=label)

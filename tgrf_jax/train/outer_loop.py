@@ -1,9 +1,11 @@
 """The outer training loop: G runs on D devices, chunk by chunk, with checkpoints, resume and final evaluation.
 
-`tgrf-train` (G = 1, `tgrf_jax.train.run_dir`) and `tgrf-sweep` (G runs, `tgrf_jax.sweep`) both train through
-`train_runs`; they differ only in the `Program` (where the runs and their env shards are placed) and in the
-`progress_fn`s they plug in (CSV files, TensorBoard, the progress line). A `progress_fn(step, metrics)` is called
-after every chunk with the env steps per run and a `ChunkMetrics`; a `state_fn(update, state)` with the program's
+Every training driver hands `train_program` two things: a `Program` (what is trained: the compiled program of its
+runs and where their env shards are placed) and a `RunDirectory` (`tgrf_jax.train.directory`: where it goes:
+progress log, checkpoints, metrics CSVs, periodic evaluation, eval.json per run). tgrf-train
+(`tgrf_jax.train.run_dir`: `SoloProgram`, G = 1) and tgrf-sweep (`tgrf_jax.sweep`: `BatchedProgram` or
+`SequentialProgram`, G runs) are two such drivers. The directory's `progress_fns(step, metrics)` are called after
+every chunk with the env steps per run and a `ChunkMetrics`; its `state_fns(update, state)` with the program's
 state (the periodic test evaluation of `tgrf_jax.train.curves`).
 
 Chunk boundaries depend only on absolute update counts (every `run.log_every` updates, cut at checkpoint
@@ -17,8 +19,8 @@ import dataclasses
 import json
 import pathlib
 import time
-from collections.abc import Callable, Iterator, Sequence
-from typing import Any, Protocol
+from collections.abc import Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 import jax
 
@@ -26,6 +28,9 @@ from tgrf_jax.config import RunConfig
 from tgrf_jax.storage.checkpoint import Checkpointer, CheckpointError
 from tgrf_jax.train.progress import ChunkMetrics, combine_runs, csv_row
 from tgrf_jax.train.stop import stop_requests
+
+if TYPE_CHECKING:
+    from tgrf_jax.train.directory import RunDirectory
 
 EVAL_FILE = "eval.json"
 
@@ -41,8 +46,12 @@ class Program(Protocol):
 
     def restore(self, checkpointer: Checkpointer, step: int) -> tuple[Any, int]: ...  # (state, its update)
 
-    # (fn(state, n_updates) -> (state, metrics), compile s or None when compiled already); the count is traced
-    def compiled_chunk(self, state) -> tuple[Callable, float | None]: ...
+    def is_compiled(self, state) -> bool: ...  # whether run_chunk is compiled for this state's shapes
+
+    def compile(self, state) -> None: ...  # compile run_chunk for this state's shapes (ahead of time)
+
+    # n_updates updates of every run: (state, metrics); one compiled program for any count (it is traced)
+    def run_chunk(self, state, n_updates: int) -> tuple[Any, Any]: ...
 
     def run_metrics(self, metrics) -> list[dict]: ...  # chunk output -> per-run {metric: float} (blocks)
 
@@ -64,7 +73,7 @@ def chunk_plan(start: int, total: int, log_every: int, *cut_every: int) -> Itera
 
 
 @dataclasses.dataclass
-class RunnerResult:
+class ProgramResult:
     state: Any  # the program's state after the last chunk
     start: int  # update this process started (or resumed) from
     updates: int  # updates done
@@ -73,29 +82,25 @@ class RunnerResult:
     evals: list | None  # per run: the final evaluation's payload (None when not evaluated)
 
 
-def train_runs(
+def train_program(
     program: Program,
-    checkpointer: Checkpointer,
+    directory: RunDirectory,
     run: RunConfig,
     *,
     resume: bool = False,
     from_step: int | None = None,
-    progress_fns: Sequence[Callable[[int, ChunkMetrics], None]] = (),
-    state_fns: Sequence[Callable[[int, Any], None]] = (),
-    cut_every: Sequence[int] = (),
-    run_dirs: Sequence[pathlib.Path] = (),
-    write_evals: bool = True,
-    say: Callable[[str], None] = print,
     stop_after_updates: int | None = None,
-) -> RunnerResult:
+) -> ProgramResult:
     """Train (or, with `resume`, continue from the latest checkpoint, or from checkpoint `from_step`) every run of
-    `program` to its end.
+    `program` to its end, writing to `directory`.
 
-    Chunks end at multiples of `run.log_every`, `run.checkpoint_every` and every period in `cut_every` (where a
-    `state_fn` wants to see the state). `run_dirs` (one per run) receive the final evaluation as eval.json (where
-    `write_evals`: on a multi-host sweep, process 0). Resuming a run that is trained to its end trains and evaluates
-    nothing: the eval.json files already written are its evaluation, and only missing ones are made again.
-    `stop_after_updates` ends early, as an interruption would (for tests)."""
+    Chunks end at multiples of `run.log_every`, `run.checkpoint_every` and every period in `directory.cut_every`
+    (where a `state_fn` wants to see the state). The run directories receive the final evaluation as eval.json
+    (where `directory.write_evals`: on a multi-host sweep, process 0). Resuming a run that is trained to its end
+    trains and evaluates nothing: the eval.json files already written are its evaluation, and only missing ones are
+    made again. `stop_after_updates` ends early, as an interruption would (for tests)."""
+    checkpointer, say, run_dirs = directory.checkpointer, directory.say, directory.run_dirs
+    progress_fns, state_fns = directory.progress_fns, directory.state_fns
     total, batch, G = program.num_updates, program.batch_size, program.num_runs
     start_time = time.perf_counter()
     steps = checkpointer.all_steps() if resume else []
@@ -114,7 +119,7 @@ def train_runs(
         if start != step:
             raise CheckpointError(f"checkpoint {str(checkpointer.path(step))!r} holds update {start}, not {step}")
         if checkpointer.delete_after(start):  # --from-step: the later updates are trained again
-            for run_dir in run_dirs if write_evals else ():
+            for run_dir in run_dirs if directory.write_evals else ():
                 (pathlib.Path(run_dir) / EVAL_FILE).unlink(missing_ok=True)
         # the one place where files written after the checkpoint are cut back to it
         wall_offset = max(
@@ -133,27 +138,29 @@ def train_runs(
     train_seconds, compiled, update = 0.0, 0, start
     # the hosts of a multi-host sweep could see a signal at different chunks: there Ctrl-C stops at once
     with stop_requests(enabled=jax.process_count() == 1) as stop:
-        for n in chunk_plan(start, end, run.log_every, run.checkpoint_every, *cut_every):
-            fn, compile_s = program.compiled_chunk(state)
-            if compile_s is not None:
+        for n in chunk_plan(start, end, run.log_every, run.checkpoint_every, *directory.cut_every):
+            if not program.is_compiled(state):
+                what = f"the training program{f' for {G} runs' if G > 1 else ''}"
+                say(f"compiling {what} ...")
+                c0 = time.perf_counter()
+                program.compile(state)
                 compiled += 1
-                say(f"compiled the training program{f' for {G} runs' if G > 1 else ''} in {compile_s:.1f} s")
+                say(f"compiled {what} in {time.perf_counter() - c0:.1f} s")
             c0 = time.perf_counter()
-            state, raw = fn(state, n)
+            state, raw = program.run_chunk(state, n)
             per_run = program.run_metrics(raw)  # blocks: the chunk is done
             dt = time.perf_counter() - c0
             train_seconds += dt
             update += n
             wall = wall_offset + time.perf_counter() - start_time
-            row = lambda m, runs: csv_row(m, update, update * batch, wall, runs * n * batch / dt)  # noqa: E731
             metrics = ChunkMetrics(
                 update=update,
                 total_updates=total,
                 env_steps=update * batch,
                 total_env_steps=total * batch,
                 eta_s=(total - update) * train_seconds / (update - start),
-                runs=tuple(row(m, 1) for m in per_run),
-                total=row(combine_runs(per_run), G),
+                runs=tuple(csv_row(m, update, update * batch, wall, n * batch / dt) for m in per_run),
+                total=csv_row(combine_runs(per_run), update, update * batch, wall, G * n * batch / dt),
             )
             for progress_fn in progress_fns:
                 progress_fn(update * batch, metrics)
@@ -165,7 +172,7 @@ def train_runs(
                 say(f"stopped by {stop.signal_name} at update {update}/{total}, with a checkpoint of that update")
                 raise KeyboardInterrupt
 
-    result = RunnerResult(state, start, update, train_seconds, compiled, None)
+    result = ProgramResult(state, start, update, train_seconds, compiled, None)
     if update == total and run.eval_episodes > 0:
         result.evals = written_evals(run_dirs, total, run) if start == total else None
         if result.evals is None:
@@ -178,7 +185,7 @@ def train_runs(
             say(f"  done in {time.perf_counter() - c0:.1f} s (compilation included)")
             for run_dir, payload in zip(run_dirs, result.evals):
                 payload.update(run_dir=str(run_dir), updates=update, env_steps=update * batch)
-                if write_evals:
+                if directory.write_evals:
                     (pathlib.Path(run_dir) / EVAL_FILE).write_text(json.dumps(payload, indent=2))
     return result
 

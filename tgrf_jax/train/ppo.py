@@ -1,10 +1,13 @@
 """Recurrent PPO as one compiled program (PureJaxRL style, Brax-style chunking).
 
-    trainer = make_train(config)                      # static choices: shapes, network, env code paths
-    hparams = trainer.default_hparams                 # traced numeric settings (vmap over them for sweeps)
-    state = trainer.init(key, hparams)                # TrainState: params, optimiser, envs, carries, RNG
-    state, metrics = trainer.run_chunk(state, 10)     # 10 PPO updates (count traced); reduced scalars
-    state, metrics = trainer.train(key, hparams)      # the whole run (pure; jit / vmap it)
+    trainer = make_trainer(config)                     # static choices: shapes, network, env code paths
+    hparams = trainer.default_hparams                  # traced numeric settings (vmap over them for sweeps)
+    state = trainer.jit_init(key, hparams)             # TrainState: params, optimiser, envs, carries, RNG
+    state, metrics = trainer.jit_run_chunk(state, 10)  # 10 PPO updates (count traced); reduced scalars
+    state, metrics = trainer.train(key, hparams)       # the whole run (pure; jit / vmap it)
+
+`init`, `run_chunk` and `train` are pure (vmap, shard_map or jit them); `jit_init` and `jit_run_chunk` are their
+compiled forms, placed on the trainer's devices (`jit_run_chunk` consumes the state it is given).
 
 One update: roll out `num_steps` steps in `num_envs` environments (the recurrent carry is reset where the
 previous step ended an episode), compute GAE (time-limit truncations bootstrap from V(info.final_obs) evaluated
@@ -22,12 +25,16 @@ and hyper-parameters, and a checkpointed `TrainState` resumes bit-for-bit.
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from tgrf_jax.config import PPOConfig, TrainConfig
 from tgrf_jax.env import (
@@ -292,8 +299,9 @@ class Trainer:
     """The compiled pieces of one training configuration (see the module docstring).
 
     `update` works on one shard's TrainState (all of it when ppo.num_shards is 1) and meets the other shards in
-    collectives over SHARD_AXIS; `run_updates` takes and returns the whole TrainState and places the shards on
+    collectives over SHARD_AXIS; `run_chunk` takes and returns the whole TrainState and places the shards on
     the devices of `mesh`, or vmaps them on one device when `mesh` is None (see `tgrf_jax.train.shards`).
+    Built by `make_trainer`.
     """
 
     config: TrainConfig
@@ -325,13 +333,10 @@ class Trainer:
         """TrainState prefix of NamedShardings (per-env fields split over the mesh), or None without a mesh."""
         if self.mesh is None:
             return None
-        from jax.sharding import NamedSharding
-        from jax.sharding import PartitionSpec as P
-
         return field_prefix(NamedSharding(self.mesh, P(SHARD_AXIS)), NamedSharding(self.mesh, P()))
 
     def place(self, ts: TrainState) -> TrainState:
-        """Put a TrainState (e.g. restored from a checkpoint) where `run_updates` expects it."""
+        """Put a TrainState (e.g. restored from a checkpoint) where `jit_run_chunk` expects it."""
         return ts if self.mesh is None else jax.device_put(ts, self.state_shardings)
 
     def across_shards(self, f):
@@ -340,8 +345,6 @@ class Trainer:
         if s == 1:
             return f
         if self.mesh is not None:
-            from jax.sharding import PartitionSpec as P
-
             spec = field_prefix(P(SHARD_AXIS), P())
             # check_vma off: the shared fields come out of pmeans and equal updates, identical on every shard
             return jax.shard_map(f, mesh=self.mesh, in_specs=(spec,), out_specs=(spec, P()), check_vma=False)
@@ -535,7 +538,7 @@ class Trainer:
         return ts, metrics
 
     # --------------------------------------------------------------------------------------- chunks / train
-    def run_updates(self, ts: TrainState, n_updates) -> tuple[TrainState, dict]:
+    def run_chunk(self, ts: TrainState, n_updates) -> tuple[TrainState, dict]:
         """`n_updates` updates (pure). The count is traced, so one compiled program runs chunks of any length:
         a run's log, checkpoint and evaluation periods never compile the trainer again. Metrics are reduced over
         the chunk: episode fields summed, the rest averaged over updates."""
@@ -555,6 +558,30 @@ class Trainer:
 
         return self.across_shards(shard_updates)(ts)
 
+    # ------------------------------------------------------------------------------------- compiled forms
+    # Cached per trainer: every call of one trainer's jitted functions shares their compilations.
+    @functools.cached_property
+    def jit_init(self) -> Callable[..., TrainState]:
+        """`init`, jitted and placed for `jit_run_chunk`; hand-built hyper-parameters are checked as a config's
+        would be (concrete values only: use `init` under vmap)."""
+        jitted = jax.jit(self.init, out_shardings=self.state_shardings)
+
+        def init(key, hparams: HParams | None = None) -> TrainState:
+            if hparams is not None:
+                check_hparams(hparams)
+            return jitted(key, hparams)
+
+        return init
+
+    @functools.cached_property
+    def jit_run_chunk(self) -> Callable[[TrainState, Any], tuple[TrainState, dict]]:
+        """`run_chunk`, jitted; the state is donated: a chunk updates it in place rather than holding two
+        copies."""
+        # Pinned output shardings: zero-element leaves (no obstacle slots, no LiDAR) would otherwise come back
+        # replicated, and the compiled chunk refuses them as its next input.
+        pinned = {} if self.mesh is None else {"out_shardings": (self.state_shardings, NamedSharding(self.mesh, P()))}
+        return jax.jit(self.run_chunk, donate_argnums=0, **pinned)
+
     def _scan_updates(self, ts: TrainState, n_updates: int) -> tuple[TrainState, dict]:
         """`n_updates` updates of one shard in a lax.scan; metrics per update."""
         return jax.lax.scan(lambda s, _: self.update(s), ts, None, length=n_updates)
@@ -572,50 +599,13 @@ def check_hparams(hparams: HParams) -> None:
     hparams.env.validate()
 
 
-class Train(NamedTuple):
-    """What `make_train` returns: a pure `train(key, hparams)` plus the chunking seams."""
-
-    train: callable  # (key, hparams) -> (TrainState, per-update metrics)
-    init: callable  # (key, hparams) -> TrainState, placed for run_chunk (jitted; concrete hparams are checked)
-    run_chunk: callable  # jitted (TrainState, n_updates traced) -> (TrainState, chunk metrics); consumes the state
-    trainer: Trainer
-    default_hparams: HParams
-    place: callable  # TrainState from elsewhere (a checkpoint) -> placed for run_chunk
-
-
-def make_train(config: TrainConfig, devices="auto") -> Train:
-    """Build the compiled training functions of `config` (validated already: a TrainConfig cannot be invalid).
+def make_trainer(config: TrainConfig, devices="auto") -> Trainer:
+    """The trainer of `config` (validated already: a TrainConfig cannot be invalid).
 
     `devices` carry the env shards when ppo.num_shards > 1: "auto" (one local device per shard if there are
     enough, else all shards vmapped on the default device), None (always vmapped) or a list of num_shards devices.
     """
     if not isinstance(config, TrainConfig):
-        raise TypeError(f"make_train needs a TrainConfig, not {type(config).__name__}")
+        raise TypeError(f"make_trainer needs a TrainConfig, not {type(config).__name__}")
     env = CrowdNavEnv(config.env, config.reward)
-    mesh = shards.shard_mesh(config.ppo.num_shards, devices)
-    trainer = Trainer(config, env, make_network_for(config), mesh)
-    jit_init = jax.jit(trainer.init, out_shardings=trainer.state_shardings)
-    # Pinned output shardings: zero-element leaves (no obstacle slots, no LiDAR) would otherwise come back
-    # replicated, and the compiled chunk refuses them as its next input.
-    chunk_shardings = (
-        {}
-        if mesh is None
-        else {
-            "out_shardings": (trainer.state_shardings, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-        }
-    )
-
-    def init(key, hparams: HParams | None = None) -> TrainState:
-        if hparams is not None:
-            check_hparams(hparams)  # hand-built hyper-parameters: checked as a config would be
-        return jit_init(key, hparams)
-
-    return Train(
-        train=trainer.train,
-        init=init,
-        # the state is donated: a chunk updates it in place rather than holding two copies
-        run_chunk=jax.jit(trainer.run_updates, donate_argnums=0, **chunk_shardings),
-        trainer=trainer,
-        default_hparams=trainer.default_hparams,
-        place=trainer.place,
-    )
+    return Trainer(config, env, make_network_for(config), shards.shard_mesh(config.ppo.num_shards, devices))

@@ -1,4 +1,5 @@
-"""A tgrf-train run directory: one run trained by the runner (`tgrf_jax.train.outer_loop`), restored, evaluated.
+"""A tgrf-train run directory: one run (`SoloProgram`) trained by the outer loop (`tgrf_jax.train.outer_loop`)
+in a `RunDirectory` (`tgrf_jax.train.directory`), restored, evaluated.
 
 Run directory:
     config.yaml          resolved TrainConfig (every field, after overrides); ppo.total_steps may be raised before
@@ -9,6 +10,7 @@ Run directory:
     checkpoints/<update>/  orbax checkpoints of the full TrainState (atomic; the last `run.keep_checkpoints` kept)
     tb/                  TensorBoard events (only if tensorboardX or torch.utils.tensorboard is installed)
     eval.json            final evaluation (the paper's metrics) of the deterministic policy
+    eval_curve.csv, eval_curve.png   with run.eval_every: test episodes during training (`tgrf_jax.train.curves`)
     learning_curve.png
 """
 
@@ -17,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import pathlib
-import time
 from collections.abc import Callable
 
 import jax
@@ -28,31 +29,15 @@ from tgrf_jax.evaluate import evaluate_state, format_eval
 from tgrf_jax.storage.checkpoint import Checkpointer
 from tgrf_jax.storage.lock import exclusive
 from tgrf_jax.train import shards
-from tgrf_jax.train.curves import (
-    CURVE_FIELDS,
-    EVAL_CURVE_CSV,
-    EVAL_CURVE_PNG,
-    PeriodicEvaluation,
-    plot_curves,
-    read_curve,
-)
-from tgrf_jax.train.outer_loop import EVAL_FILE, train_runs
-from tgrf_jax.train.ppo import TrainState, make_train
-from tgrf_jax.train.progress import (
-    CsvWriter,
-    LogFile,
-    ProgressPrinter,
-    TensorBoardWriter,
-    run_rows,
-)
+from tgrf_jax.train.curves import EVAL_CURVE_CSV, EVAL_CURVE_PNG, plot_curves, read_curve
+from tgrf_jax.train.directory import CHECKPOINT_DIR, METRICS_FILE, RunDirectory
+from tgrf_jax.train.outer_loop import EVAL_FILE, train_program
+from tgrf_jax.train.ppo import TrainState, make_trainer
 
 CONFIG_FILE = "config.yaml"
 STARTED_FILE = "config.started.yaml"  # the config the run started with: what --resume checks edits against
 RESUME_EDITABLE = ("ppo.total_steps",)  # "extend training"
-METRICS_FILE = "metrics.csv"
 CURVE_FILE = "learning_curve.png"
-CHECKPOINT_DIR = "checkpoints"
-LOG_FILE = "progress.log"
 
 __all__ = ["EVAL_FILE", "RunResult", "SoloProgram", "load_run_config", "restore_run", "train_run"]
 
@@ -90,46 +75,48 @@ def load_run_config(run_dir) -> TrainConfig:
 
 
 class SoloProgram:
-    """One run (`make_train`): its env shards on one device each where there are enough, else vmapped."""
+    """The `Program` of one run (`make_trainer`): its env shards on one device each where there are enough, else
+    vmapped."""
 
     num_runs = 1
 
     def __init__(self, config: TrainConfig, devices="auto"):
         self.config = config
-        self.train = make_train(config, devices)
-        self.num_updates = self.train.trainer.num_updates
+        self.trainer = make_trainer(config, devices)
+        self.num_updates = self.trainer.num_updates
         self.batch_size = config.ppo.batch_size
         self.key = jax.random.PRNGKey(config.run.seed)
-        self.compiled: Callable | None = None
+        self.compiled: Callable | None = None  # jit_run_chunk compiled ahead of time; the update count is traced
 
     def init(self) -> TrainState:
-        return self.train.init(self.key, self.train.default_hparams)
+        return self.trainer.jit_init(self.key, self.trainer.default_hparams)
 
-    def restore(self, checkpointer: Checkpointer, step: int):
-        template = jax.eval_shape(self.train.trainer.init, self.key, self.train.default_hparams)
-        state = self.train.place(checkpointer.restore(template, step))
+    def restore(self, checkpointer: Checkpointer, step: int) -> tuple[TrainState, int]:
+        template = jax.eval_shape(self.trainer.init, self.key, self.trainer.default_hparams)
+        state = self.trainer.place(checkpointer.restore(template, step))
         return state, int(state.update)
 
-    def compiled_chunk(self, state):
-        if self.compiled is not None:
-            return self.compiled, None
-        c0 = time.perf_counter()
-        compiled = self.train.run_chunk.lower(state, np.int32(1)).compile()
-        self.compiled = lambda state, n: compiled(state, np.int32(n))
-        return self.compiled, time.perf_counter() - c0
+    def is_compiled(self, state: TrainState) -> bool:
+        return self.compiled is not None
+
+    def compile(self, state: TrainState) -> None:
+        self.compiled = self.trainer.jit_run_chunk.lower(state, np.int32(1)).compile()
+
+    def run_chunk(self, state: TrainState, n_updates: int) -> tuple[TrainState, dict]:
+        return self.compiled(state, np.int32(n_updates))
 
     def run_metrics(self, metrics) -> list[dict]:
         return [{k: float(v) for k, v in jax.device_get(metrics).items()}]
 
-    def host_state(self, state):
+    def host_state(self, state: TrainState) -> TrainState:
         return state
 
-    def evaluate(self, state, episodes: int, seed: int) -> list[dict]:
+    def evaluate(self, state: TrainState, episodes: int, seed: int) -> list[dict]:
         # the trainer's own network: one compiled evaluation for every checkpoint of the run
-        return [evaluate_state(self.config, state, episodes, seed, net=self.train.trainer.net)]
+        return [evaluate_state(self.config, state, episodes, seed, net=self.trainer.net)]
 
-    def describe(self, state) -> str:
-        t, p = self.train.trainer, self.config.ppo
+    def describe(self, state: TrainState) -> str:
+        t, p = self.trainer, self.config.ppo
         return (
             f"{t.env} | {self.config.network.name}/{self.config.network.size} "
             f"({t.net.num_params(state.params):,} params) | {p.num_envs} envs x {p.num_steps} steps, "
@@ -173,7 +160,6 @@ def train_run(
 
 
 def _train_run(config, run_dir: pathlib.Path, resume: bool, from_step, log, stop_after_updates) -> RunResult:
-    ckpt_dir = run_dir / CHECKPOINT_DIR
     if resume:
         config = load_run_config(run_dir)
         check_resume_config(run_dir, config)
@@ -184,82 +170,43 @@ def _train_run(config, run_dir: pathlib.Path, resume: bool, from_step, log, stop
         (run_dir / STARTED_FILE).write_text(config.to_yaml())
         (run_dir / CONFIG_FILE).write_text(config.to_yaml())
 
-    say = LogFile(run_dir / LOG_FILE, log)
     program = SoloProgram(config)
-    # created if missing: a run stopped before its first checkpoint has none yet
-    ckpt = Checkpointer(ckpt_dir, keep=config.run.keep_checkpoints, create=True)
-    writers = [CsvWriter(run_dir / METRICS_FILE, run_rows(0)), TensorBoardWriter(run_dir / "tb"), ProgressPrinter(say)]
-    curve_writers = []
-    if config.run.eval_every:
-        curve_writers.append(CsvWriter(run_dir / EVAL_CURVE_CSV, lambda rows: rows, CURVE_FIELDS, every_chunk=False))
-    state_fns = (
-        [
-            PeriodicEvaluation(
-                program, config.run.eval_every, config.run.curve_episodes, config.run.eval_seed, curve_writers, say
-            )
-        ]
-        if curve_writers
-        else []
-    )
-    if resume:
-        say(f"resuming {run_dir}")
-    try:
-        out = train_runs(
-            program,
-            ckpt,
-            config.run,
-            resume=resume,
-            from_step=from_step,
-            progress_fns=writers,
-            state_fns=state_fns,
-            cut_every=[config.run.eval_every] if state_fns else [],
-            run_dirs=[run_dir],
-            say=say,
-            stop_after_updates=stop_after_updates,
+    with RunDirectory.open(run_dir, program, config.run, tensorboard=True, log=log) as directory:
+        if resume:
+            directory.say(f"resuming {run_dir}")
+        out = train_program(
+            program, directory, config.run, resume=resume, from_step=from_step, stop_after_updates=stop_after_updates
         )
-    finally:
-        for w in writers + curve_writers:
-            getattr(w, "close", lambda: None)()
-        ckpt.close()
-
-    result = RunResult(
-        run_dir, out.state, out.updates, out.train_seconds, out.evals and out.evals[0], out.compiled_chunks
-    )
-    if out.updates == program.num_updates:
-        try:
-            from tgrf_jax.train.plots import plot_learning_curve
-
-            plot_learning_curve(
-                run_dir / METRICS_FILE, run_dir / CURVE_FILE, title=f"{config.run.name}: {program.train.trainer.env}"
-            )
-            if config.run.eval_every:
-                plot_curves(
-                    {config.run.name: [read_curve(run_dir / EVAL_CURVE_CSV)]},
-                    run_dir / EVAL_CURVE_PNG,
-                    title=f"{config.run.name}: test episodes during training",
-                )
-        except Exception as e:  # a plotting failure must not lose a finished run
-            say(f"warning: could not plot the learning curve: {e}")
-        if result.eval is not None:
-            say(format_eval(result.eval))
-        trained = out.updates - out.start
-        say(
-            f"done: {out.updates} updates, {out.updates * config.ppo.batch_size:,} env steps; this process trained "
-            f"{trained} updates in {out.train_seconds:.1f} s "
-            f"({trained * config.ppo.batch_size / max(out.train_seconds, 1e-9):,.0f} steps/s, compilation "
-            f"excluded); run dir {run_dir}"
+        result = RunResult(
+            run_dir, out.state, out.updates, out.train_seconds, out.evals and out.evals[0], out.compiled_chunks
         )
-    say.close()
+        if out.updates == program.num_updates:
+            directory.plot(lambda: _plot(config, run_dir, program.trainer.env))
+            if result.eval is not None:
+                directory.say(format_eval(result.eval))
+            directory.done(out, program)
     return result
+
+
+def _plot(config: TrainConfig, run_dir: pathlib.Path, env) -> None:
+    from tgrf_jax.train.plots import plot_learning_curve
+
+    plot_learning_curve(run_dir / METRICS_FILE, run_dir / CURVE_FILE, title=f"{config.run.name}: {env}")
+    if config.run.eval_every:
+        plot_curves(
+            {config.run.name: [read_curve(run_dir / EVAL_CURVE_CSV)]},
+            run_dir / EVAL_CURVE_PNG,
+            title=f"{config.run.name}: test episodes during training",
+        )
 
 
 def restore_run(run_dir, step: int | None = None) -> tuple[TrainConfig, TrainState]:
     """Config and TrainState of a run directory (latest checkpoint unless `step`)."""
     run_dir = pathlib.Path(run_dir)
     config = load_run_config(run_dir)
-    t = make_train(config)
+    trainer = make_trainer(config)
     ckpt = Checkpointer(run_dir / CHECKPOINT_DIR, keep=config.run.keep_checkpoints, create=False)
-    template = jax.eval_shape(t.trainer.init, jax.random.PRNGKey(0), t.default_hparams)
+    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(0), trainer.default_hparams)
     try:
         state = ckpt.restore(template, step)
     finally:
