@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +23,7 @@ from tgrf_jax.deploy import (
     PolicySource,
     PolicyStep,
     load_source,
+    make_runtime,
     read_interface,
 )
 from tgrf_jax.deploy.runtimes import OnnxRuntime, StableHloRuntime
@@ -119,8 +121,18 @@ def test_exported_step_matches_env_policy(exported, const_vel_episodes, runtime)
 
 def test_export_directory_and_interface(exported):
     files = sorted(p.name for p in exported.iterdir())
-    assert files == ["config.yaml", "interface.json", "meta.json", "params.npz", "policy.onnx", "policy.stablehlo"]
+    assert files == [
+        "config.yaml",
+        "interface.json",
+        "manifest.json",
+        "meta.json",
+        "params.npz",
+        "policy.onnx",
+        "policy.stablehlo",
+    ]
     assert not list(exported.parent.glob(".policy.*"))  # no temporary directory left beside it
+    manifest = json.loads((exported / "manifest.json").read_text())
+    assert sorted(manifest["sha256"]) == [f for f in files if f != "manifest.json"]
     spec = read_interface(exported)
     import onnxruntime as ort
 
@@ -263,7 +275,6 @@ def test_navigator_refuses_bad_input(const_vel):
         (dict(goal=(1.0, 2.0, 3.0)), r"goal must be 2 numbers"),
         (dict(humans=np.zeros((3, 3))), r"humans as an array must be \(M, 4\)"),
         (dict(humans=[{"pos": (1, 1)}]), r"humans\[0\] needs 'position'"),
-        (dict(humans=[Detection((1, 1), (0, 0), -0.3)]), r"humans\[0\] radius = -0.3"),
         (dict(robot_state=(0, 0, 0, 40.0, 0)), r"velocities are in m/s"),
         (dict(lidar=np.ones(360)), r"lidar: this policy has no scan input"),
     ]
@@ -401,3 +412,302 @@ def test_navigator_with_lidar(lidar_source, lidar_exported, lidar_episodes):
     for lidar, message in cases:
         with pytest.raises(ValueError, match=message):
             nav.act(s["robot"], s["goal"], s["humans"], lidar)
+
+
+# ------------------------------------------------------------------------------------- every policy tgrf-jax trains
+
+# Each network with and without the LiDAR encoder, both kinematics, every predictor, recurrent (HH Attn, DS-RNN) or
+# not (MLP), both frames: tiny crowds, untrained weights (the export does not care what the weights learnt).
+POLICIES = {
+    "mlp-none-world": dict(network="mlp", kinematics="holonomic", predictor="none", lidar_rays=0, frame="world"),
+    "mlp-truth-lidar": dict(network="mlp", kinematics="holonomic", predictor="truth", lidar_rays=8, frame="goal"),
+    "hh_attn-const_vel": dict(network="hh_attn", kinematics="holonomic", predictor="const_vel", lidar_rays=0),
+    "hh_attn-unicycle-gst-lidar": dict(network="hh_attn", kinematics="unicycle", predictor="gst", lidar_rays=8),
+    "dsrnn-gst": dict(network="dsrnn", kinematics="holonomic", predictor="gst", lidar_rays=0),
+    "dsrnn-unicycle-lidar": dict(
+        network="dsrnn", kinematics="unicycle", predictor="const_vel", lidar_rays=8, frame="world"
+    ),
+}
+
+
+def tiny_source(network, kinematics, predictor, lidar_rays, frame="goal", seed=0) -> PolicySource:
+    config = TrainConfig.from_dict(
+        {
+            "env": {
+                "num_humans": 3,
+                "kinematics": kinematics,
+                "predictor": predictor,
+                "lidar_rays": lidar_rays,
+                "human_policy": "social_force",
+            },
+            "network": {"name": network, "size": "small", "frame": frame},
+        }
+    )
+    params = jax.device_get(jax.jit(make_network_for(config).init)(jax.random.PRNGKey(seed)))
+    return PolicySource(config, params, {"test": f"untrained {network}"})
+
+
+def random_inputs(step: PolicyStep, rng: np.random.Generator) -> list[np.ndarray]:
+    """A plausible observation: robot and goal in the arena, humans around the robot, a mask, a scan."""
+    f32 = np.float32
+    robot_node = np.array([*rng.uniform(-5, 5, 2), 0.3, *rng.uniform(-5, 5, 2), 1.0, rng.uniform(-3, 3)], f32)
+    humans = rng.uniform(-4, 4, (step.num_humans, step.obs_human_dim)).astype(f32)
+    mask = (rng.uniform(size=step.num_humans) < 0.7).astype(f32)
+    humans[mask == 0] = 0.0
+    scan = [rng.uniform(0.2, 6.0, step.lidar_rays).astype(f32)] if step.lidar_rays else []
+    return [robot_node, rng.uniform(-1, 1, 2).astype(f32), humans, mask, *scan]
+
+
+def assert_runtimes_agree(directory, source: PolicySource, steps: int = 4) -> None:
+    """ONNX and StableHLO against the JAX policy over a few chained decisions (the state carried over)."""
+    step = PolicyStep(source.config, source.params)
+    reference = make_runtime(source, "jax")
+    loaded = load_source(directory)  # the manifest and interface.json are checked on the way
+    rng = np.random.default_rng(0)
+    inputs = [random_inputs(step, rng) for _ in range(steps)]
+    for name in ("onnx", "stablehlo"):
+        run = make_runtime(loaded, name)
+        state = ref_state = np.zeros(step.state_size, np.float32)
+        for obs in inputs:
+            action, state = run(*obs, state)
+            ref_action, ref_state = reference(*obs, ref_state)
+            np.testing.assert_allclose(action, ref_action, atol=1e-5, err_msg=name)
+            np.testing.assert_allclose(state, ref_state, atol=1e-5, err_msg=name)
+        if step.state_size and source.config.network.name != "mlp":
+            assert np.abs(state).max() > 0  # a recurrent network's state moved, so it was carried and compared
+
+
+def assert_onnx_loads_quietly(path, capfd) -> None:
+    """ONNX Runtime at its default log level (warnings shown) says nothing when it loads the file."""
+    import onnxruntime as ort
+
+    capfd.readouterr()
+    ort.InferenceSession(str(path), ort.SessionOptions(), providers=["CPUExecutionProvider"])
+    err = capfd.readouterr().err
+    assert "[W:" not in err and "[E:" not in err, err[:500]
+
+
+@pytest.mark.parametrize("name", list(POLICIES))
+def test_every_policy_exports_and_runs_alike(name, tmp_path, capfd):
+    from tgrf_jax.deploy import export
+
+    source = tiny_source(**POLICIES[name])
+    out = export(source, tmp_path / "policy", say=lambda m: None)
+    assert_runtimes_agree(out, source)
+    assert_onnx_loads_quietly(out / "policy.onnx", capfd)
+    spec = read_interface(out)
+    assert spec["robot"]["kinematics"] == source.config.env.kinematics
+    assert spec["predictions"]["predictor"] == source.config.env.predictor
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    from tgrf_jax.train.run_dir import train_run
+
+    run = tmp_path_factory.mktemp("tiny") / "run"
+    tiny = pathlib.Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
+    train_run(TrainConfig.from_yaml(tiny, ["run.eval_episodes=0"]), run, log=lambda m: None)
+    return run
+
+
+def test_export_of_a_trained_run(tiny_run, tmp_path, capfd):
+    from tgrf_jax.cli.export import main
+
+    cases = {
+        "latest": ([str(tiny_run)], 12),
+        "step": ([str(tiny_run), "--step", "8"], 8),
+        "pretrained": (["--pretrained", str(tiny_run)], 12),
+    }
+    for name, (args, update) in cases.items():
+        assert main([*args, "--out", str(tmp_path / name)]) == 0, name
+        source = load_source(tiny_run, step=update)
+        assert json.loads((tmp_path / name / "meta.json").read_text())["update"] == update
+        assert_runtimes_agree(tmp_path / name, source, steps=2)
+    assert_onnx_loads_quietly(tmp_path / "latest" / "policy.onnx", capfd)
+
+
+def test_export_removes_what_a_killed_export_left(tmp_path, const_vel):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tgrf_jax.deploy import export
+    from tgrf_jax.pretrained.directory import PARTIAL_SUFFIX, _lock
+
+    command = [sys.executable, "-m", "tgrf_jax.cli.export", "--pretrained", PRETRAINED, "--out"]
+    proc = subprocess.Popen([*command, str(tmp_path / "killed")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 300
+    while not list(tmp_path.glob(f".killed.*{PARTIAL_SUFFIX}")) and proc.poll() is None:
+        assert time.monotonic() < deadline, "the export never started writing"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()[-2000:]
+    left = list(tmp_path.glob(f".killed.*{PARTIAL_SUFFIX}"))
+    assert left and not (tmp_path / "killed").exists()
+    # a writer still at work (its lock held) keeps its directory
+    busy = tmp_path / f".busy.x{PARTIAL_SUFFIX}"
+    busy.mkdir()
+    fd = _lock(busy, wait=True)
+    try:
+        export(const_vel, tmp_path / "next", ["stablehlo"], say=lambda m: None)
+        assert busy.is_dir()
+    finally:
+        os.close(fd)
+    assert not [p for p in left if p.exists()]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [busy.name, "next"]
+
+
+# ------------------------------------------------------------------------------------- a directory verified whole
+
+
+def _flip_byte(path: pathlib.Path, offset: int) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x01
+    path.write_bytes(bytes(data))
+
+
+def _rewrite_params(directory: pathlib.Path, change) -> None:
+    with np.load(directory / "params.npz") as data:
+        flat = {k: data[k] for k in data.files}
+    change(flat)
+    np.savez(directory / "params.npz", **flat)
+
+
+def _first_kernel(flat: dict) -> str:
+    return sorted(k for k in flat if k.endswith("kernel"))[0]
+
+
+def _set(value):
+    def change(flat):
+        key = _first_kernel(flat)
+        flat[key] = flat[key].copy()
+        flat[key].flat[3] = value
+
+    return change
+
+
+# Each case: what is done to a copy of an exported directory, whether the manifest is then written anew (to reach
+# the checks behind it, as a hand-edited directory would), and the error.
+TAMPERING = {
+    "interface edited": (
+        lambda d: (d / "interface.json").write_text(
+            (d / "interface.json").read_text().replace('"dt_s": 0.25', '"dt_s": 0.5')
+        ),
+        False,
+        r"interface.json' does not match manifest.json",
+    ),
+    "interface edited, manifest rewritten": (
+        lambda d: (d / "interface.json").write_text(
+            (d / "interface.json").read_text().replace('"dt_s": 0.25', '"dt_s": 0.5')
+        ),
+        True,
+        r"interface.json' does not match the policy it describes: dt_s is 0.5 there, 0.25 from config.yaml",
+    ),
+    "interface deleted": (
+        lambda d: (d / "interface.json").unlink(),
+        False,
+        r"interface.json' is listed in manifest.json but is missing",
+    ),
+    "params header byte flipped": (
+        lambda d: _flip_byte(d / "params.npz", 40),
+        False,
+        r"params.npz' does not match manifest.json",
+    ),
+    "NaN weight": (lambda d: _rewrite_params(d, _set(np.nan)), True, r"params.npz': .*kernel holds 1 non-finite"),
+    "inf weight": (lambda d: _rewrite_params(d, _set(np.inf)), True, r"params.npz': .*kernel holds 1 non-finite"),
+    "float64 weights": (
+        lambda d: _rewrite_params(d, lambda f: f.update({k: v.astype(np.float64) for k, v in f.items()})),
+        True,
+        r"params.npz': .* is float64, the config's network expects float32",
+    ),
+    "params truncated": (
+        lambda d: (d / "params.npz").write_bytes((d / "params.npz").read_bytes()[:5000]),
+        True,
+        r"params.npz': cannot read the parameters \(BadZipFile: ",
+    ),
+    "manifest deleted": (lambda d: (d / "manifest.json").unlink(), False, r"manifest.json' missing"),
+    "file added": (lambda d: (d / "notes.txt").write_text("hi"), False, r"notes.txt' is not listed in manifest.json"),
+}
+
+
+@pytest.mark.parametrize("case", list(TAMPERING))
+def test_exported_directory_is_verified_whole(case, exported, tmp_path):
+    from tgrf_jax.pretrained import write_manifest
+
+    tamper, reseal, message = TAMPERING[case]
+    broken = tmp_path / "broken"
+    shutil.copytree(exported, broken)
+    tamper(broken)
+    if reseal:
+        write_manifest(broken)
+    with pytest.raises(ConfigError, match=message) as caught:
+        load_source(broken)
+    assert "\n" not in str(caught.value) and str(broken) in str(caught.value)
+
+
+@pytest.fixture(scope="module")
+def nan_weights(exported, tmp_path_factory):
+    from tgrf_jax.pretrained import write_manifest
+
+    broken = tmp_path_factory.mktemp("nan") / "policy"
+    shutil.copytree(exported, broken)
+    _rewrite_params(broken, _set(np.nan))
+    write_manifest(broken)
+    return broken
+
+
+@pytest.mark.parametrize("runtime", ["jax", "onnx", "stablehlo"])
+def test_navigator_refuses_nan_weights_in_every_runtime(nan_weights, runtime):
+    with pytest.raises(ConfigError, match=r"params.npz': .* non-finite"):
+        Navigator(nan_weights, runtime=runtime)
+
+
+def test_tools_refuse_a_damaged_directory(nan_weights, exported, tmp_path, capsys):
+    from tgrf_jax.cli import eval_main
+    from tgrf_jax.cli.export import main as export_main
+
+    assert eval_main(["--pretrained", str(nan_weights), "--episodes", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "params.npz" in err and "non-finite" in err and "Traceback" not in err
+    assert export_main(["--pretrained", str(nan_weights), "--out", str(tmp_path / "a")]) == 2
+    assert "non-finite" in capsys.readouterr().err and not (tmp_path / "a").exists()
+
+    flipped = tmp_path / "flipped"
+    shutil.copytree(exported, flipped)
+    _flip_byte(flipped / "policy.onnx", 100)
+    assert export_main(["--pretrained", str(flipped), "--out", str(tmp_path / "b")]) == 2
+    assert "policy.onnx' does not match manifest.json" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="policy.onnx' does not match manifest.json"):
+        Navigator(flipped, runtime="onnx")
+
+
+def test_install_hints_name_an_extra_that_installs_what_is_missing(monkeypatch, tmp_path, capsys):
+    import re
+    import sys
+
+    tomllib = pytest.importorskip("tomllib")
+    from tgrf_jax.cli.export import main as export_main
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    extras = tomllib.loads((root / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+
+    def installs(extra: str) -> set[str]:
+        return {re.split(r"[<>=!~\[; ]", req, maxsplit=1)[0].lower() for req in extras[extra]}
+
+    assert {"jax2onnx", "onnxruntime", "onnx"} <= installs("deploy")
+    assert "gymnasium" in installs("gym")
+    # every hint in the package names one of these extras
+    hints = set()
+    for path in [*root.joinpath("tgrf_jax").rglob("*.py")]:
+        hints |= set(re.findall(r"pip install '(tgrf-jax\[[a-z,]+\])'", path.read_text()))
+    assert hints and hints <= {"tgrf-jax[deploy]", "tgrf-jax[gym]"}, hints
+
+    monkeypatch.setitem(sys.modules, "jax2onnx", None)  # as if not installed
+    assert export_main(["--pretrained", PRETRAINED, "--out", str(tmp_path / "x")]) == 2
+    assert "pip install 'tgrf-jax[deploy]'" in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)
+    with pytest.raises(ConfigError, match=r"pip install 'tgrf-jax\[deploy\]'"):
+        OnnxRuntime(tmp_path)

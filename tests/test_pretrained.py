@@ -27,6 +27,9 @@ def test_export_writes_config_params_and_meta(exported):
     run_dir, dest = exported
     meta = json.loads((dest / "meta.json").read_text())
     assert meta["note"] == "tiny" and meta["update"] == 12 and meta["source"] == str(run_dir)
+    manifest = json.loads((dest / "manifest.json").read_text())
+    assert sorted(manifest["sha256"]) == ["config.yaml", "meta.json", "params.npz"]
+    assert sorted(p.name for p in dest.parent.iterdir()) == ["policy", "run"]  # no temporary directory left
     config, params, _ = pretrained.load(str(dest))
     assert config == TrainConfig.from_yaml(run_dir / "config.yaml") and "params" in params
 
@@ -61,16 +64,49 @@ def test_bad_pretrained_policies_are_named(exported, tmp_path, capsys):
         pretrained.load(str(broken))
     shutil.copy(dest / "params.npz", broken / "params.npz")
     (broken / "config.yaml").write_text((dest / "config.yaml").read_text().replace("name: mlp", "name: hh_attn"))
+    with pytest.raises(ConfigError, match="config.yaml' does not match manifest.json"):
+        pretrained.load(str(broken))
+    pretrained.write_manifest(broken)  # as a hand-edited directory would: the checks behind the manifest hold
     with pytest.raises(ConfigError, match="does not fit the hh_attn/small network"):
         pretrained.load(str(broken))
     (broken / "config.yaml").write_text((dest / "config.yaml").read_text())
     (broken / "params.npz").write_bytes(b"not a zip file")
-    with pytest.raises(ConfigError, match="cannot read the policy"):
+    pretrained.write_manifest(broken)
+    with pytest.raises(ConfigError, match=r"params.npz': cannot read the parameters \(ValueError: "):
         pretrained.load(str(broken))
+    (broken / "params.npz").write_bytes((dest / "params.npz").read_bytes()[:-100])  # truncated
+    (broken / "meta.json").write_text("{")
+    pretrained.write_manifest(broken)
+    with pytest.raises(ConfigError, match=r"params.npz': cannot read the parameters") as caught:
+        pretrained.load(str(broken))
+    assert "\n" not in str(caught.value)
+    shutil.copy(dest / "params.npz", broken / "params.npz")
+    pretrained.write_manifest(broken)
+    with pytest.raises(ConfigError, match=r"meta.json': cannot read the policy's metadata"):
+        pretrained.load(str(broken))
+
+
+def test_export_removes_leftovers_of_a_killed_export(exported):
+    from tgrf_jax.pretrained.directory import PARTIAL_SUFFIX
+
+    run_dir, dest = exported
+    stale = dest.parent / f".policy.abc{PARTIAL_SUFFIX}"  # what a writer killed mid-way leaves (its lock released)
+    stale.mkdir()
+    (stale / "params.npz").write_bytes(b"half")
+    pretrained.export(run_dir, dest, meta={"note": "tiny"})
+    assert not stale.exists() and sorted(p.name for p in dest.parent.iterdir()) == ["policy", "run"]
+
+
+def test_shipped_manifests_are_package_data():
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    line = next(x for x in pyproject.splitlines() if x.startswith('"tgrf_jax.pretrained" ='))
+    assert all(f'"*/{f}"' in line for f in (*pretrained.FILES, pretrained.MANIFEST_FILE)), line
 
 
 @pytest.mark.parametrize("name", pretrained.available())
 def test_shipped_policies_load_with_their_config(name):
-    config, params, meta = pretrained.load(name)  # checks every parameter's shape against the config's network
+    assert (pretrained.ROOT / name / pretrained.MANIFEST_FILE).is_file()
+    # checks the files against the manifest, every parameter's name, shape, dtype and finiteness
+    config, params, meta = pretrained.load(name)
     assert meta["row"] in name and meta["reward.scheme"] == config.reward.scheme
     assert 0.0 < meta["test"]["success_rate"] <= 1.0

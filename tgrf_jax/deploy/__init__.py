@@ -4,10 +4,11 @@
 ONNX export and the 'onnx' runtime need the optional extra: pip install 'tgrf-jax[deploy]'.
 """
 
-from tgrf_jax.deploy.export import FORMATS, export
-from tgrf_jax.deploy.navigator import Decision, Detection, Navigator, RobotState
-from tgrf_jax.deploy.policy import PolicySource, PolicyStep, load_source, read_interface
+from tgrf_jax.deploy.export import export
+from tgrf_jax.deploy.navigator import Decision, Detection, Navigator, NonFiniteDecision, RobotState
+from tgrf_jax.deploy.policy import FORMATS, PolicyStep, read_interface
 from tgrf_jax.deploy.runtimes import RUNTIMES, make_runtime
+from tgrf_jax.deploy.source import PolicySource, load_source
 
 __all__ = [
     "FORMATS",
@@ -15,6 +16,7 @@ __all__ = [
     "Decision",
     "Detection",
     "Navigator",
+    "NonFiniteDecision",
     "PolicySource",
     "PolicyStep",
     "RobotState",

@@ -16,6 +16,11 @@ pi/2, so for a holonomic policy the scan is turned from the robot's real heading
 with linear interpolation between rays, `tgrf_jax.policies.nets.frames.rotate_scan`'s rule; exact when the
 headings differ by whole rays). A policy without a LiDAR refuses a scan rather than ignore it: a caller passing
 one expects it to be used.
+
+Every input is checked against what float32 and physics allow before anything is computed (docs/deployment.md):
+the caller's own values (the robot's state, the goal, the scan's shape) are refused with a ValueError naming the
+argument; a detection, which a tracker can get wrong, is dropped and counted instead. A network output that is not
+finite raises `NonFiniteDecision` and changes nothing: the recurrent state and the GST history stay as they were.
 """
 
 from __future__ import annotations
@@ -27,14 +32,29 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from tgrf_jax.config import ConfigError
-from tgrf_jax.deploy.policy import PolicySource, PolicyStep, load_source
+from tgrf_jax.config import MAX_BODY_RADIUS, ConfigError
+from tgrf_jax.deploy.policy import PolicyStep
 from tgrf_jax.deploy.runtimes import make_runtime
+from tgrf_jax.deploy.source import PolicySource, load_source
 
 log = logging.getLogger(__name__)
 
 HOLONOMIC_HEADING = np.float32(np.pi / 2)  # what the env keeps a holonomic robot's heading at (its training input)
-SPEED_SANITY = 5.0  # a measured speed above this many times v_max is taken for a unit mistake, not a fast robot
+# Positions (robot, goal, detections) within +-POSITION_BOUND m of the map origin on each axis: there float32, the
+# network's number type, still resolves a millimetre, and no square of a distance comes near its overflow.
+POSITION_BOUND = 1.0e4
+# The robot never drives faster than v_max (the env scales or clips every command to it); a measured speed above
+# this many times v_max is a unit or frame mistake, not odometry noise.
+ROBOT_SPEED_FACTOR = 1.5
+# Reduced headings lie in [HEADING_CENTRE - pi, HEADING_CENTRE + pi): the turn around the heading every simulated
+# robot starts with, where the env's unwrapped headings mostly are (a goal-frame network sees only differences).
+HEADING_CENTRE = np.pi / 2
+HUMAN_SPEED_MAX = 12.5  # m/s, above any person's sprint: a faster detection is a tracking error
+HUMAN_RADIUS_MAX = MAX_BODY_RADIUS  # m, the largest body radius a config accepts (a human's is 0.2 .. 0.5 m)
+
+
+class NonFiniteDecision(RuntimeError):
+    """The network's output for this reading was not finite; the Navigator's state is as before the call."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,7 +80,7 @@ class Detection:
 
 @dataclasses.dataclass(frozen=True)
 class Decision:
-    """What `Navigator.act` returns.
+    """What `Navigator.act` returns (always finite: a non-finite network output raises `NonFiniteDecision`).
 
     command: (2,) float; holonomic: (vx, vy) in m/s, world frame, norm <= v_max; unicycle: (v, omega) in m/s and
     rad/s, v within +-v_max and omega = dtheta / dt with dtheta within the per-step limit.
@@ -70,7 +90,7 @@ class Decision:
     command: np.ndarray
     action: np.ndarray
     num_detected: int  # detections passed in
-    num_dropped: int  # of those, dropped for a non-finite number
+    num_dropped: int  # of those, dropped as implausible (a non-finite number, or beyond the bounds of the module)
     num_in_range: int  # within the sensor range
     num_used: int  # rows fed to the network (the nearest, at most its capacity)
     num_lidar_invalid: int = 0  # LiDAR rays with a non-finite range, read as the sensor range (LiDAR policies)
@@ -104,11 +124,25 @@ def rotate_scan(scan: np.ndarray, angle: float) -> np.ndarray:
     return (lo + frac * (hi - lo)).astype(np.float32)
 
 
-def _robot_state(state) -> np.ndarray:
-    """(x, y, heading, vx, vy) from a RobotState, a {'pose', 'velocity'} mapping or 5 numbers."""
+def _within_map(xy: np.ndarray, name: str) -> None:
+    if np.max(np.abs(xy)) > POSITION_BOUND:
+        raise ValueError(
+            f"{name} ({xy[0]:g}, {xy[1]:g}) m is beyond +-{POSITION_BOUND:g} m of the map origin, where float32 "
+            "loses its millimetre resolution: positions are in metres; re-centre the map frame near the robot"
+        )
+
+
+def reduce_heading(heading: float) -> float:
+    """`heading` rad modulo 2 pi, within [HEADING_CENTRE - pi, HEADING_CENTRE + pi)."""
+    return float(np.mod(heading - HEADING_CENTRE + math.pi, 2.0 * math.pi) + HEADING_CENTRE - math.pi)
+
+
+def _robot_state(state, v_max: float) -> np.ndarray:
+    """(x, y, heading, vx, vy) from a RobotState, a {'pose', 'velocity'} mapping or 5 numbers, checked (see the
+    module's bounds) and with the heading reduced modulo 2 pi."""
     if isinstance(state, RobotState):
         state = (state.x, state.y, state.heading, state.vx, state.vy)
-    elif isinstance(state, Mapping):
+    if isinstance(state, Mapping):
         unknown = set(state) - {"pose", "velocity"}
         if unknown or "pose" not in state or "velocity" not in state:
             raise ValueError(
@@ -116,8 +150,19 @@ def _robot_state(state) -> np.ndarray:
             )
         pose = _vector(state["pose"], 3, "robot_state pose", "x m, y m, heading rad")
         vel = _vector(state["velocity"], 2, "robot_state velocity", "vx, vy in m/s, world frame")
-        return np.concatenate([pose, vel])
-    return _vector(state, 5, "robot_state", "x m, y m, heading rad, vx m/s, vy m/s")
+        rs = np.concatenate([pose, vel])
+    else:
+        rs = _vector(state, 5, "robot_state", "x m, y m, heading rad, vx m/s, vy m/s")
+    _within_map(rs[0:2], "robot_state position")
+    speed = math.hypot(rs[3], rs[4])
+    if speed > ROBOT_SPEED_FACTOR * v_max:
+        raise ValueError(
+            f"robot_state velocity ({rs[3]:g}, {rs[4]:g}) m/s: its speed {speed:g} m/s is over {ROBOT_SPEED_FACTOR:g} "
+            f"x v_max = {ROBOT_SPEED_FACTOR * v_max:g} m/s, faster than the robot drives: velocities are in m/s, "
+            "world frame"
+        )
+    rs[2] = reduce_heading(rs[2])
+    return rs
 
 
 class _GstTracker:
@@ -177,6 +222,21 @@ class _GstTracker:
             taken.add(slot)
             out[i] = slot
         return out
+
+    def snapshot(self) -> tuple:
+        """Everything `predictions` changes, for `restore` (arrays copied)."""
+        copy = lambda a: None if a is None else a.copy()  # noqa: E731
+        return (
+            copy(self.positions),
+            copy(self.visible),
+            copy(self.robot_hist),
+            list(self.owner),
+            self.last_seen.copy(),
+            self.frame,
+        )
+
+    def restore(self, saved: tuple) -> None:
+        self.positions, self.visible, self.robot_hist, self.owner, self.last_seen, self.frame = saved
 
     def _forget(self, slot: int):
         if self.positions is not None:
@@ -272,7 +332,9 @@ class Navigator:
     # ------------------------------------------------------------------------------------------ parsing
 
     def _detections(self, humans, ids):
-        """(pos (M, 2), vel (M, 2), radius (M,), ids or None, detected, dropped) with non-finite rows removed."""
+        """(pos (M, 2), vel (M, 2), radius (M,), ids or None, detected, dropped by reason) with implausible rows
+        removed: a non-finite number, a position beyond the map bound, a speed above HUMAN_SPEED_MAX or a radius
+        outside [0, HUMAN_RADIUS_MAX]."""
         if humans is None:
             humans = []
         if isinstance(humans, np.ndarray) or (
@@ -321,12 +383,17 @@ class Navigator:
             if len(ids) != detected:
                 raise ValueError(f"ids has {len(ids)} entries for {detected} humans")
         finite = np.isfinite(pos).all(1) & np.isfinite(vel).all(1) & np.isfinite(radius)
-        bad = np.flatnonzero(finite & (radius < 0))
-        if len(bad):
-            raise ValueError(f"humans[{bad[0]}] radius = {radius[bad[0]]}: a radius must be >= 0 m")
-        dropped = int(detected - finite.sum())
-        if dropped:
-            keep = np.flatnonzero(finite)
+        with np.errstate(invalid="ignore", over="ignore"):  # the non-finite rows are dropped by `finite` anyway
+            reasons = {
+                "a non-finite number": ~finite,
+                f"a position beyond +-{POSITION_BOUND:g} m": finite & (np.abs(pos).max(1, initial=0) > POSITION_BOUND),
+                f"a speed over {HUMAN_SPEED_MAX:g} m/s": finite & (np.hypot(vel[:, 0], vel[:, 1]) > HUMAN_SPEED_MAX),
+                f"a radius outside [0, {HUMAN_RADIUS_MAX:g}] m": finite & ((radius < 0) | (radius > HUMAN_RADIUS_MAX)),
+            }
+        bad = np.logical_or.reduce(list(reasons.values())) if detected else np.zeros(0, bool)
+        dropped = {reason: int(rows.sum()) for reason, rows in reasons.items() if rows.any()}
+        if bad.any():
+            keep = np.flatnonzero(~bad)
             pos, vel, radius = pos[keep], vel[keep], radius[keep]
             ids = [ids[i] for i in keep] if ids is not None else None
         return pos, vel, radius, ids, detected, dropped
@@ -363,11 +430,19 @@ class Navigator:
 
     # ------------------------------------------------------------------------------------------ observation
 
-    def observation(self, robot_state, goal, humans, lidar=None, *, ids=None):
+    def observation(self, robot_state, goal, humans, lidar=None, *, ids=None) -> tuple[tuple, tuple]:
         """The network's inputs (robot_node, robot_vel, humans, human_mask[, lidar]) for this situation, plus the
         counts (detected, dropped, in range, used[, LiDAR rays not finite]); the bracketed parts exactly for a policy
         with a LiDAR. Advances the GST history: call it once per decision, or use `act`."""
-        rs = _robot_state(robot_state)
+        obs, counts, _, _ = self._observe(robot_state, goal, humans, lidar, ids)
+        return obs, counts
+
+    def _observe(self, robot_state, goal, humans, lidar, ids):
+        """(inputs, counts, robot state (5,), detections dropped by reason) as `observation`. Every check comes
+        before the GST history advances, so a refused reading changes nothing."""
+        env = self.env_config
+        v_max = np.float32(env.robot_v_max)
+        rs = _robot_state(robot_state, float(v_max))
         if self.lidar_rays:
             scan, invalid = self._scan(lidar, float(rs[2]))
         elif lidar is not None:
@@ -376,19 +451,14 @@ class Navigator:
                 "the scan into human detections (positions and velocities) and pass those as `humans`"
             )
         goal = _vector(goal, 2, "goal", "gx, gy in m, world frame")
-        env = self.env_config
-        v_max = np.float32(env.robot_v_max)
-        if math.hypot(rs[3], rs[4]) > SPEED_SANITY * v_max:
-            raise ValueError(
-                f"robot_state velocity ({rs[3]}, {rs[4]}) is over {SPEED_SANITY:g} x v_max = "
-                f"{v_max} m/s: velocities are in m/s, world frame"
-            )
+        _within_map(goal, "goal")
         pos, vel, radius, ids, detected, dropped = self._detections(humans, ids)
         if self._gst is not None and ids is None and len(pos):
             raise ValueError(
                 "the gst predictor follows each human over 5 frames: give every detection an id "
                 "(Detection(..., id=track_id) or act(..., ids=[...]))"
             )
+
         f32 = np.float32
         robot_pos = rs[0:2].astype(f32)
         rel = pos.astype(f32) - robot_pos
@@ -414,33 +484,52 @@ class Navigator:
         heading = f32(rs[2]) if self.kinematics == "unicycle" else HOLONOMIC_HEADING
         robot_node = np.array([robot_pos[0], robot_pos[1], env.robot_radius, goal[0], goal[1], v_max, heading], f32)
         robot_vel = rs[3:5].astype(f32)
-        counts = (detected, dropped, len(in_range), len(used))
+        counts = (detected, detected - len(pos), len(in_range), len(used))
         if self.lidar_rays:
-            return (robot_node, robot_vel, rows, mask, scan), counts + (invalid,)
-        return (robot_node, robot_vel, rows, mask), counts
+            return (robot_node, robot_vel, rows, mask, scan), counts + (invalid,), rs, dropped
+        return (robot_node, robot_vel, rows, mask), counts, rs, dropped
 
     # ------------------------------------------------------------------------------------------ decision
 
     def act(self, robot_state, goal, humans=None, lidar=None, *, ids=None) -> Decision:
         """One decision. robot_state: RobotState, {'pose': (x, y, heading), 'velocity': (vx, vy)} or
         (x, y, heading, vx, vy), world frame, m / rad / m/s. goal: (gx, gy) m. humans: Detections, mappings with
-        'position', 'velocity' and optional 'radius' / 'id', or an (M, 4|5) array [x, y, vx, vy(, radius)];
-        detections with a non-finite number are dropped and counted. ids: track ids (gst needs them).
-        lidar: for a policy trained with a LiDAR (env.lidar_rays = R > 0, `self.lidar_rays`), required: the R
-        ranges in metres, ray 0 along the robot's heading, counter-clockwise; ranges above the sensor range are
-        clipped to it, non-finite ones read as the sensor range and counted (`Decision.num_lidar_invalid`,
-        logged). A policy without a LiDAR (every shipped one) refuses a scan: detections are its only view."""
-        obs, counts = self.observation(robot_state, goal, humans, lidar, ids=ids)
-        detected, dropped, in_range, used = counts[:4]
+        'position', 'velocity' and optional 'radius' / 'id', or an (M, 4|5) array [x, y, vx, vy(, radius)].
+        ids: track ids (gst needs them). lidar: for a policy trained with a LiDAR (env.lidar_rays = R > 0,
+        `self.lidar_rays`), required: the R ranges in metres, ray 0 along the robot's heading, counter-clockwise;
+        ranges above the sensor range are clipped to it, non-finite ones read as the sensor range and counted
+        (`Decision.num_lidar_invalid`, logged). A policy without a LiDAR (every shipped one) refuses a scan.
+
+        Refused with a ValueError naming the argument: a robot position or goal beyond +-POSITION_BOUND m, a robot
+        speed over ROBOT_SPEED_FACTOR x v_max, a non-finite number in them (headings are reduced modulo 2 pi).
+        Dropped, counted in `Decision.num_dropped` and logged: detections with a non-finite number, a position
+        beyond the bound, a speed over HUMAN_SPEED_MAX or a radius outside [0, HUMAN_RADIUS_MAX]. A network output
+        that is not finite raises NonFiniteDecision. A call that raises leaves the recurrent state and the GST
+        history as they were, so the next reading is decided as if the refused one had never come."""
+        saved = self._gst.snapshot() if self._gst is not None else None
+        obs, counts, rs, dropped = self._observe(robot_state, goal, humans, lidar, ids)
+        detected, num_dropped, in_range, used = counts[:4]
         invalid = counts[4] if self.lidar_rays else 0
-        action, self.state = self._run(*obs, self.state)
+        action, new_state = self._run(*obs, self.state)
         action = np.asarray(action, np.float32)
-        if dropped:
-            self.dropped_total += dropped
+        new_state = np.asarray(new_state, np.float32)
+        if not (np.isfinite(action).all() and np.isfinite(new_state).all()):
+            if saved is not None:
+                self._gst.restore(saved)
+            raise NonFiniteDecision(
+                f"the policy's output for this reading is not finite (action {action.tolist()}, "
+                f"{int(new_state.size - np.isfinite(new_state).sum())} non-finite recurrent state values); no "
+                "command: the recurrent state and the prediction history are left as they were, so stop the robot "
+                "(or hold a safe command) and decide again on the next reading"
+            )
+        self.state = new_state
+        if num_dropped:
+            self.dropped_total += num_dropped
             log.warning(
-                "dropped %d of %d detections with a non-finite position, velocity or radius (%d so far)",
-                dropped,
+                "dropped %d of %d detections (%s; %d so far)",
+                num_dropped,
                 detected,
+                ", ".join(f"{n} with {reason}" for reason, n in dropped.items()),
                 self.dropped_total,
             )
         if invalid:
@@ -452,12 +541,11 @@ class Navigator:
                 self.env_config.sensor_range,
                 self.lidar_invalid_total,
             )
-        rs = _robot_state(robot_state)
-        return Decision(self._command(action, rs), action, detected, dropped, in_range, used, invalid)
+        return Decision(self._command(action, rs), action, detected, num_dropped, in_range, used, invalid)
 
     def _command(self, action: np.ndarray, rs: np.ndarray) -> np.ndarray:
         env = self.env_config
-        a = np.nan_to_num(action.astype(np.float64), nan=0.0, posinf=1e30, neginf=-1e30)
+        a = action.astype(np.float64)
         if self.kinematics == "holonomic":
             speed = math.hypot(a[0], a[1])
             return (a * min(1.0, env.robot_v_max / max(speed, 1e-12))).astype(np.float32)

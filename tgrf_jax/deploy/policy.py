@@ -1,4 +1,4 @@
-"""One policy decision as a plain function of flat arrays, and where its parameters come from.
+"""One policy decision as a plain function of flat arrays.
 
 The env's observation is a pytree and the network's recurrent state a dict whose layout depends on the network;
 neither travels well to another runtime. `PolicyStep` fixes one flat, unbatched signature
@@ -14,7 +14,6 @@ NaN as "no return" (the sensor range). The exported ONNX file and StableHLO arti
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import pathlib
 
@@ -28,49 +27,8 @@ STABLEHLO_FILE = "policy.stablehlo"
 INPUT_NAMES = ("robot_node", "robot_vel", "humans", "human_mask", "state")  # a policy without a LiDAR
 LIDAR_INPUT_NAMES = ("robot_node", "robot_vel", "humans", "human_mask", "lidar", "state")  # with one
 OUTPUT_NAMES = ("action", "new_state")
-
-
-@dataclasses.dataclass
-class PolicySource:
-    """A trained policy: its TrainConfig, network parameters and a description of where it came from."""
-
-    config: TrainConfig
-    params: dict
-    origin: dict
-    exported_dir: pathlib.Path | None = None  # set when loaded from a tgrf-export directory
-
-
-def is_exported(path) -> bool:
-    path = pathlib.Path(path)
-    return (path / INTERFACE_FILE).is_file()
-
-
-def load_source(source: str | pathlib.Path, *, step: int | None = None) -> PolicySource:
-    """A policy from a tgrf-train run directory (latest checkpoint unless `step`), a tgrf-export directory, or a
-    pretrained name / directory. Raises ConfigError or CheckpointError naming the path and what is wrong."""
-    from tgrf_jax import pretrained
-
-    path = pathlib.Path(source)
-    if path.is_dir() and (path / "checkpoints").exists():
-        import jax
-
-        from tgrf_jax.train.run_dir import restore_run
-
-        config, state = restore_run(path, step)
-        params = jax.device_get(state.params)
-        return PolicySource(config, params, {"run_dir": str(path), "update": int(state.update)})
-    if step is not None:
-        raise ConfigError(
-            f"step selects a checkpoint of a run directory; {str(source)!r} is not one (no checkpoints/ in it)"
-        )
-    if path.is_dir() and not (path / "params.npz").exists() and (path / "config.yaml").exists():
-        raise ConfigError(
-            f"{str(path)!r} looks like a tgrf-train run directory without checkpoints/: nothing trained to load"
-        )
-    config, params, meta = pretrained.load(str(source))
-    exported = pretrained.resolve(str(source))
-    origin = {"pretrained": str(source), **{k: meta[k] for k in ("experiment", "row", "seed", "update") if k in meta}}
-    return PolicySource(config, params, origin, exported if is_exported(exported) else None)
+FORMAT_FILES = {"onnx": ONNX_FILE, "stablehlo": STABLEHLO_FILE}  # export format -> its file
+FORMATS = tuple(FORMAT_FILES)
 
 
 class PolicyStep:
@@ -157,8 +115,13 @@ class PolicyStep:
 
 
 def read_interface(directory) -> dict:
+    """An exported directory's interface.json as it is on disk (`tgrf_jax.deploy.load_source` checks it against
+    the policy)."""
     path = pathlib.Path(directory) / INTERFACE_FILE
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as e:
+        spec = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
         raise ConfigError(f"{str(path)!r}: cannot read the interface ({type(e).__name__}: {e})") from None
+    if not isinstance(spec, dict):
+        raise ConfigError(f"{str(path)!r} must hold a JSON object, not {type(spec).__name__}")
+    return spec

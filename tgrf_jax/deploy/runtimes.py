@@ -8,12 +8,8 @@ import pathlib
 import numpy as np
 
 from tgrf_jax.config import ConfigError
-from tgrf_jax.deploy.policy import (
-    ONNX_FILE,
-    STABLEHLO_FILE,
-    PolicySource,
-    PolicyStep,
-)
+from tgrf_jax.deploy.policy import ONNX_FILE, STABLEHLO_FILE, PolicyStep
+from tgrf_jax.deploy.source import PolicySource
 
 RUNTIMES = ("jax", "onnx", "stablehlo")
 
@@ -33,16 +29,16 @@ def _need_file(directory, name: str, runtime: str) -> pathlib.Path:
 
 
 class JaxRuntime:
-    def __init__(self, step: PolicyStep):
+    def __init__(self, step: PolicyStep) -> None:
         self._fn = step.jitted()
 
-    def __call__(self, *inputs):
+    def __call__(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         action, state = self._fn(*inputs)
         return np.asarray(action), np.asarray(state)
 
 
 class OnnxRuntime:
-    def __init__(self, directory, threads: int = 1):
+    def __init__(self, directory: pathlib.Path | None, threads: int = 1) -> None:
         try:
             import onnxruntime as ort
         except ImportError:
@@ -51,14 +47,16 @@ class OnnxRuntime:
         # One decision is a few hundred small ops: a thread pool costs more in hand-offs than it saves.
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
-        options.log_severity_level = 3  # unused-initializer notices are noise for the user
-        self._session = ort.InferenceSession(
-            str(_need_file(directory, ONNX_FILE, "onnx")), options, providers=["CPUExecutionProvider"]
-        )
+        path = _need_file(directory, ONNX_FILE, "onnx")
+        try:
+            self._session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        except Exception as e:  # ONNX Runtime reports a damaged file as one of its own exception types
+            reason = " ".join(str(e).split())[:300]
+            raise ConfigError(f"{str(path)!r} is not a loadable ONNX model ({type(e).__name__}: {reason})") from None
         # the file's own input order: policy.INPUT_NAMES, or LIDAR_INPUT_NAMES for a policy that reads a scan
         self._names = [i.name for i in self._session.get_inputs()]
 
-    def __call__(self, *inputs):
+    def __call__(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if len(inputs) != len(self._names):
             raise ValueError(f"the ONNX policy takes {len(self._names)} inputs {self._names}; got {len(inputs)}")
         action, state = self._session.run(None, dict(zip(self._names, inputs)))
@@ -66,7 +64,7 @@ class OnnxRuntime:
 
 
 class StableHloRuntime:
-    def __init__(self, directory):
+    def __init__(self, directory: pathlib.Path | None) -> None:
         import jax
 
         path = _need_file(directory, STABLEHLO_FILE, "stablehlo")
@@ -78,12 +76,14 @@ class StableHloRuntime:
             ) from None
         self._fn = jax.jit(exported.call)
 
-    def __call__(self, *inputs):
+    def __call__(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         action, state = self._fn(*inputs)
         return np.asarray(action), np.asarray(state)
 
 
-def make_runtime(source: PolicySource, runtime: str = "jax", threads: int = 1):
+def make_runtime(
+    source: PolicySource, runtime: str = "jax", threads: int = 1
+) -> JaxRuntime | OnnxRuntime | StableHloRuntime:
     if runtime not in RUNTIMES:
         raise ConfigError(f"unknown runtime {runtime!r}; allowed: {', '.join(RUNTIMES)}")
     if runtime == "jax":

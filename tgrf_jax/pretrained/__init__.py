@@ -1,22 +1,34 @@
 """Trained policies that ship with the package, and exporting any run's policy in the same form.
 
 A policy is a directory holding `config.yaml` (the run's TrainConfig), `params.npz` (the network parameters,
-flattened with '/'-joined keys) and `meta.json` (where it comes from: experiment, row, seed, test metrics,
-commit). `tgrf-eval --pretrained NAME` and `tgrf-render --pretrained NAME` play one; NAME is a directory under
-this package (see `available()`) or a path to such a directory.
+flattened with '/'-joined keys, float32) and `meta.json` (where it comes from: experiment, row, seed, test metrics,
+commit), sealed by `manifest.json`, the SHA-256 of every file (`tgrf_jax.pretrained.directory`). `tgrf-eval
+--pretrained NAME` and `tgrf-render --pretrained NAME` play one; NAME is a directory under this package (see
+`available()`) or a path to such a directory. `load` refuses a directory whose files do not match its manifest and
+parameters that do not fit the config's network (names, shapes, dtype) or are not finite.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import pathlib
-import shutil
-import tempfile
 
 import numpy as np
 
 from tgrf_jax.config import ConfigError, TrainConfig, load_yaml
+from tgrf_jax.pretrained.directory import MANIFEST_FILE, verify, write_manifest, writing
+
+__all__ = [
+    "FILES",
+    "MANIFEST_FILE",
+    "available",
+    "check_params",
+    "export",
+    "load",
+    "resolve",
+    "write_manifest",
+    "write_policy",
+]
 
 ROOT = pathlib.Path(__file__).resolve().parent
 FILES = ("config.yaml", "params.npz", "meta.json")
@@ -64,59 +76,97 @@ def _unflatten(flat: dict) -> dict:
     return tree
 
 
-def load(name_or_path: str):
-    """(TrainConfig, params, meta) of a pretrained policy; the parameters are checked against the config's
-    network (a mismatch names both shapes)."""
+def _one_line(e: Exception) -> str:
+    return " ".join(f"{type(e).__name__}: {e}".split())
+
+
+def _read_params(path: pathlib.Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: np.asarray(data[k]) for k in data.files}
+    # NumPy's zip and .npy readers raise a dozen exception types for a truncated or damaged file (BadZipFile,
+    # zlib.error, EOFError, ValueError, KeyError, ...): each is the same "cannot read" for the user.
+    except Exception as e:
+        raise ConfigError(f"{str(path)!r}: cannot read the parameters ({_one_line(e)})") from None
+
+
+def _read_meta(path: pathlib.Path) -> dict:
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise ConfigError(f"{str(path)!r}: cannot read the policy's metadata ({_one_line(e)})") from None
+    if not isinstance(meta, dict):
+        raise ConfigError(f"{str(path)!r} must hold a JSON object, not {type(meta).__name__}")
+    return meta
+
+
+def check_params(config: TrainConfig, params, where: str) -> dict[str, np.ndarray]:
+    """The parameters flattened ('/'-joined names), after checking them against the config's network: the same
+    names, shapes and dtypes, every value finite. `where` names their file or origin in the ConfigError."""
     import jax
 
     from tgrf_jax.policies import make_network_for
 
-    path = resolve(name_or_path)
-    config = TrainConfig.from_dict(load_yaml(path / "config.yaml"))
-    try:
-        with np.load(path / "params.npz") as data:
-            flat = {k: data[k] for k in data.files}
-        meta = json.loads((path / "meta.json").read_text())
-    except (OSError, ValueError) as e:
-        raise ConfigError(f"{str(path)!r}: cannot read the policy ({type(e).__name__}: {e})") from None
+    flat = {k: np.asarray(v) for k, v in _flatten(jax.device_get(params)).items()}
     net = make_network_for(config)
     expected = _flatten(jax.eval_shape(net.init, jax.random.PRNGKey(0)))
     if set(flat) != set(expected):
         raise ConfigError(
-            f"{str(path / 'params.npz')!r} does not fit the {config.network.name}/"
-            f"{config.network.size} network of its config.yaml: parameter names differ "
-            f"({sorted(set(flat) ^ set(expected))[:4]} ...)"
+            f"{where} does not fit the {config.network.name}/{config.network.size} network of its config: "
+            f"parameter names differ ({sorted(set(flat) ^ set(expected))[:4]} ...)"
         )
-    for k, v in flat.items():
-        if v.shape != expected[k].shape:
+    for k in sorted(flat):
+        v, want = flat[k], expected[k]
+        if v.shape != want.shape:
+            raise ConfigError(f"{where}: {k} has shape {v.shape}, the config's network expects {want.shape}")
+        if v.dtype != want.dtype:
+            raise ConfigError(f"{where}: {k} is {v.dtype}, the config's network expects {want.dtype}")
+        bad = int(v.size - np.count_nonzero(np.isfinite(v)))
+        if bad:
             raise ConfigError(
-                f"{str(path / 'params.npz')!r}: {k} has shape {v.shape}, the config's network "
-                f"expects {expected[k].shape}"
+                f"{where}: {k} holds {bad} non-finite value(s) (NaN or inf); a usable policy's parameters are "
+                "all finite"
             )
+    return flat
+
+
+def load(name_or_path: str):
+    """(TrainConfig, params, meta) of a pretrained policy. Refuses (ConfigError, one line naming the file) a
+    directory whose files do not match its manifest, an unreadable file, and parameters that do not fit the
+    config's network or are not finite."""
+    path = resolve(name_or_path)
+    verify(path, FILES)
+    try:
+        config = TrainConfig.from_dict(load_yaml(path / "config.yaml"))
+    except ConfigError as e:
+        message = str(e)
+        raise ConfigError(
+            message if "config.yaml" in message else f"{str(path / 'config.yaml')!r}: {message}"
+        ) from None
+    flat = _read_params(path / "params.npz")
+    meta = _read_meta(path / "meta.json")
+    check_params(config, flat, repr(str(path / "params.npz")))
     return config, _unflatten(flat), meta
 
 
+def write_policy(directory: pathlib.Path, config: TrainConfig, params, meta: dict) -> None:
+    """Write the pretrained format's files (`FILES`) into `directory`, refusing parameters `check_params` would.
+    The manifest is the directory writer's (`tgrf_jax.pretrained.directory.writing`), written last."""
+    flat = check_params(config, params, "the policy's parameters")
+    (directory / "config.yaml").write_text(config.to_yaml())
+    np.savez(directory / "params.npz", **flat)
+    (directory / "meta.json").write_text(json.dumps(meta, indent=2))
+
+
 def export(run_dir, dest, meta: dict | None = None, step: int | None = None) -> pathlib.Path:
-    """Write the policy of a tgrf-train run directory (latest checkpoint unless `step`) to `dest` atomically."""
+    """Write the policy of a tgrf-train run directory (latest checkpoint unless `step`) to `dest` atomically,
+    replacing an existing `dest`."""
     import jax
 
     from tgrf_jax.train.run_dir import restore_run
 
     config, state = restore_run(run_dir, step)
-    dest = pathlib.Path(dest)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    tmp.chmod(0o755)  # mkdtemp makes it private; an exported policy is data for every user of the checkout
-    try:
-        (tmp / "config.yaml").write_text(config.to_yaml())
-        arrays = {k: np.asarray(v) for k, v in _flatten(jax.device_get(state.params)).items()}
-        np.savez(tmp / "params.npz", **arrays)
-        payload = dict(meta or {}, update=int(state.update), source=str(run_dir))
-        (tmp / "meta.json").write_text(json.dumps(payload, indent=2))
-        if dest.exists():
-            shutil.rmtree(dest)
-        os.replace(tmp, dest)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-    return dest
+    payload = dict(meta or {}, update=int(state.update), source=str(run_dir))
+    with writing(dest, replace=True) as tmp:
+        write_policy(tmp, config, jax.device_get(state.params), payload)
+    return pathlib.Path(dest)
