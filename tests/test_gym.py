@@ -1,5 +1,5 @@
-"""tgrf_jax.gym: Gymnasium's own checker on the single env, and the vector env's same-step autoreset against
-the batched env it wraps."""
+"""tgrf_jax.gym: Gymnasium's own checker on the single env, the vector env's autoreset modes against the batched
+env it wraps, Gymnasium's vector wrappers on it, rendering, and the calls it refuses."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ import jax
 import numpy as np
 import pytest
 
-gymnasium = pytest.importorskip("gymnasium")
+gymnasium = pytest.importorskip("gymnasium")  # the [gym] extra; the imports below need it
 
-from gymnasium.utils.env_checker import check_env
-from gymnasium.vector import AutoresetMode
+from gymnasium.utils.env_checker import check_env  # noqa: E402 (after the importorskip above)
+from gymnasium.vector import AutoresetMode  # noqa: E402 (after the importorskip above)
 
-from tgrf_jax.env import CrowdNavEnv
-from tgrf_jax.gym import ENV_ID, CrowdNavGymEnv, CrowdNavVectorEnv, obs_layout
+from tgrf_jax.env import CrowdNavEnv  # noqa: E402 (after the importorskip above)
+from tgrf_jax.gym import ENV_ID, CrowdNavGymEnv, CrowdNavVectorEnv, obs_layout  # noqa: E402 (after the importorskip)
 
 SMALL = {"num_humans": 5, "time_limit": 3.0}  # 12-step episodes: several end within a short test
 
@@ -51,7 +51,7 @@ def test_single_env_plays_the_env_episode():
 
 def test_vector_env_same_step_autoreset():
     b = 16
-    venv = CrowdNavVectorEnv(b, SMALL)
+    venv = CrowdNavVectorEnv(b, SMALL, autoreset_mode=AutoresetMode.SAME_STEP)
     assert venv.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
     assert venv.observation_space.shape == (b, venv.single_observation_space.shape[0])
     obs, _ = venv.reset(seed=0)
@@ -150,3 +150,159 @@ def test_lidar_scan_is_part_of_the_observation():
     assert obs[:, layout["lidar"]].min() < 5.0  # the corridor's walls are in range
     obs, *_ = venv.step(np.zeros((b, 2), np.float32))
     assert obs in venv.observation_space
+
+
+# ------------------------------------------------------------------------------------------------ autoreset modes
+
+
+def rollout(venv, steps: int, seed: int = 0):
+    """(obs, reward, terminated, truncated, infos) of `steps` steps of seeded random actions after reset(seed)."""
+    obs, _ = venv.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    out = [(obs, None, None, None, None)]
+    for _ in range(steps):
+        out.append(venv.step(rng.uniform(-1, 1, (venv.num_envs, 2)).astype(np.float32)))
+    return out
+
+
+def test_vector_env_next_step_autoreset_is_the_default():
+    b = 8
+    nxt = CrowdNavVectorEnv(b, SMALL)
+    assert nxt.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP == nxt.autoreset_mode
+    same = CrowdNavVectorEnv(b, SMALL, autoreset_mode="same_step")
+    # Until the first episode ends both modes play the same steps; the step that ends it returns, in NEXT_STEP,
+    # the ended episode's last observation (SAME_STEP's final_obs), and the next step returns the new episode's
+    # first (SAME_STEP's obs of the ending step) with reward 0 and no end, while the other environments go on.
+    n = rollout(nxt, 14)
+    s = rollout(same, 14)
+    np.testing.assert_array_equal(n[0][0], s[0][0])
+    t = next(i for i in range(1, 15) if (s[i][2] | s[i][3]).any())
+    for i in range(1, t):
+        for a, c in zip(n[i][:4], s[i][:4]):
+            np.testing.assert_array_equal(a, c)
+    done = s[t][2] | s[t][3]
+    np.testing.assert_array_equal(n[t][2], s[t][2])
+    np.testing.assert_array_equal(n[t][3], s[t][3])
+    for i in np.flatnonzero(done):
+        np.testing.assert_array_equal(n[t][0][i], s[t][4]["final_obs"][i])
+        np.testing.assert_array_equal(n[t + 1][0][i], s[t][0][i])
+    assert "final_obs" not in n[t][4] and (n[t][4]["_outcome"] == np.ones(b, bool)).all()
+    obs, reward, terminated, truncated, infos = n[t + 1]
+    assert (reward[done] == 0).all() and not (terminated[done] | truncated[done]).any()
+    assert infos["_outcome"].tolist() == (~done).tolist() and (infos["outcome"][done] == 0).all()
+    going = ~done & ~(s[t + 1][2] | s[t + 1][3])
+    np.testing.assert_array_equal(obs[going], s[t + 1][0][going])
+    np.testing.assert_array_equal(reward[~done], s[t + 1][1][~done])
+
+
+def test_gymnasium_vector_wrappers_work_on_the_default_env():
+    from gymnasium.wrappers.vector import DictInfoToList, NormalizeObservation, NormalizeReward, RecordEpisodeStatistics
+
+    b, steps = 4, 30
+    venv = DictInfoToList(RecordEpisodeStatistics(NormalizeReward(NormalizeObservation(CrowdNavVectorEnv(b, SMALL)))))
+    obs, infos = venv.reset(seed=0)
+    assert infos == [{}] * b
+    rng = np.random.default_rng(0)
+    episodes = []
+    for _ in range(steps):
+        obs, reward, terminated, truncated, infos = venv.step(rng.uniform(-1, 1, (b, 2)).astype(np.float32))
+        assert isinstance(infos, list) and len(infos) == b and np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
+        for i, info in enumerate(infos):
+            if terminated[i] or truncated[i]:
+                assert info["outcome"] in (1, 2, 3) and info["episode"]["l"] <= 12
+                episodes.append(info["episode"])
+            elif "outcome" in info:
+                assert info["outcome"] == 0
+    assert len(episodes) >= b  # every environment ended at least once within 30 steps of 3 s episodes
+    assert abs(float(np.mean(obs))) < 3.0  # normalised
+
+
+def test_vector_env_autoreset_disabled():
+    b = 4
+    venv = CrowdNavVectorEnv(b, SMALL, autoreset_mode=AutoresetMode.DISABLED)
+    assert venv.metadata["autoreset_mode"] == AutoresetMode.DISABLED
+    obs, _ = venv.reset(seed=0)
+    actions = np.zeros((b, 2), np.float32)
+    for _ in range(12):
+        obs, _, terminated, truncated, _ = venv.step(actions)
+        if (terminated | truncated).any():
+            break
+    done = terminated | truncated
+    assert done.any()
+    with pytest.raises(RuntimeError, match=r"environments \[.*\] ended: with autoreset_mode DISABLED reset them"):
+        venv.step(actions)
+    fresh, _ = venv.reset(options={"reset_mask": done})
+    np.testing.assert_array_equal(fresh[~done], obs[~done])  # the others keep their observation
+    assert not np.array_equal(fresh[done], obs[done])
+    venv.step(actions)
+    with pytest.raises(ValueError, match=r"reset_mask must be a bool array of shape \(4,\)"):
+        venv.reset(options={"reset_mask": [1, 0]})
+    with pytest.raises(ValueError, match="unknown reset options"):
+        venv.reset(options={"mask": done})
+    with pytest.raises(ValueError, match="autoreset_mode must be one of"):
+        CrowdNavVectorEnv(b, SMALL, autoreset_mode="sometimes")
+
+
+# ------------------------------------------------------------------------------------------------ rendering
+
+
+def test_single_env_renders_rgb_frames():
+    env = gymnasium.make(ENV_ID, config=SMALL, render_mode="rgb_array")
+    assert "rgb_array" in env.metadata["render_modes"] and env.metadata["render_fps"] == 4.0
+    env.reset(seed=0)
+    first = env.render()
+    assert first.ndim == 3 and first.shape[2] == 3 and first.dtype == np.uint8 and first.shape[0] > 100
+    assert len(np.unique(first.reshape(-1, 3), axis=0)) > 10  # a drawing, not a blank
+    for _ in range(3):
+        env.step(np.array([0.0, 1.0], np.float32))
+    later = env.render()
+    assert later.shape == first.shape and not np.array_equal(later, first)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)  # its render check included
+    advice = "we recommend using a symmetric and normalized space"
+    assert not [str(w.message) for w in caught if advice not in str(w.message)]
+    with pytest.raises(ValueError, match=r"render_mode must be None or one of \['rgb_array'\]"):
+        CrowdNavGymEnv(SMALL, render_mode="human")
+
+
+def test_vector_env_renders_one_frame_per_env():
+    venv = gymnasium.make_vec(ENV_ID, 2, config=SMALL, render_mode="rgb_array")
+    assert venv.render_mode == "rgb_array" and "rgb_array" in venv.metadata["render_modes"]
+    venv.reset(seed=0)
+    frames = venv.render()
+    assert len(frames) == 2 and all(f.dtype == np.uint8 and f.ndim == 3 for f in frames)
+    assert not np.array_equal(frames[0], frames[1])
+
+
+# ------------------------------------------------------------------------------------------------ refused calls
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e39])
+def test_non_finite_actions_are_refused(bad):
+    env = CrowdNavGymEnv(SMALL)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action must be finite \(float32\): entry \[1\] is"):
+        env.step(np.array([0.5, bad]))
+    venv = CrowdNavVectorEnv(3, SMALL)
+    venv.reset(seed=0)
+    actions = np.zeros((3, 2))
+    actions[2, 0] = bad
+    with pytest.raises(ValueError, match=r"actions must be finite \(float32\): entry \[2, 0\] is"):
+        venv.step(actions)
+
+
+def test_closed_envs_refuse_calls():
+    env = CrowdNavGymEnv(SMALL, render_mode="rgb_array")
+    env.reset(seed=0)
+    env.close()
+    for call in (lambda: env.step(np.zeros(2, np.float32)), lambda: env.reset(seed=0), env.render):
+        with pytest.raises(RuntimeError, match=r"after close\(\): this environment is closed"):
+            call()
+    venv = CrowdNavVectorEnv(2, SMALL)
+    venv.reset(seed=0)
+    venv.close()
+    with pytest.raises(RuntimeError, match=r"step\(\) after close\(\)"):
+        venv.step(np.zeros((2, 2), np.float32))
+    with pytest.raises(RuntimeError, match=r"reset\(\) after close\(\)"):
+        venv.reset(seed=0)
