@@ -88,8 +88,7 @@ def _recorded(source, episodes: int = 3, steps: int = 40):
 def latency(name: str, source, decisions: int, out_dir) -> dict:
     import numpy as np
 
-    from tgrf_jax.deploy import Navigator, PolicyStep, export
-    from tgrf_jax.deploy.policy import load_source
+    from tgrf_jax.deploy import Navigator, PolicyStep, export, load_source
     from tgrf_jax.deploy.runtimes import make_runtime
 
     t0 = time.perf_counter()
