@@ -2,7 +2,7 @@
 deterministic policy plays the fixed test episodes (`run.curve_episodes` of them, from `run.eval_seed`), as the
 paper's Fig. 6 plots SR, NT, PL and ITR during training.
 
-`PeriodicEvaluation` plugs into the runner's `state_fn(update, state)` seam; the chunk plan is cut at its period,
+`PeriodicEvaluation` plugs into the outer loop's `state_fn(update, state)` seam; the chunk plan is cut at its period,
 so the evaluated parameters are exactly those of the checkpoints at the same updates (`tgrf-eval --step` on a
 kept checkpoint reproduces a row). Rows go to `eval_curve.csv` per run (and, in a sweep, to the long
 `eval_curves.csv` of all runs); a resumed run drops the rows after its checkpoint, as for metrics.csv.

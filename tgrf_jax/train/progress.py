@@ -1,8 +1,8 @@
-"""What a training run reports after every compiled chunk, and the writers that plug into the runner's
+"""What a training run reports after every compiled chunk, and the writers that plug into the outer loop's
 `progress_fn(step, metrics)` seam: the metrics CSV, TensorBoard and the progress line.
 
 `metrics` is a `ChunkMetrics`: one CSV row per run plus the row of all runs together. A writer that keeps a file
-per run also implements `truncate(update)`, which the runner calls (and only it) when a run resumes from a
+per run also implements `truncate(update)`, which the outer loop calls (and only it) when a run resumes from a
 checkpoint older than the file's last row.
 """
 
