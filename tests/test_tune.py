@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +16,8 @@ from tgrf_jax.config import ConfigError, TrainConfig
 from tgrf_jax.train.ppo import hparams_from_config
 from tgrf_jax.tune import exploit_explore, num_replaced, parse_objective, parse_space
 from tgrf_jax.tune.pbt import get_values, select_donors
+from tgrf_jax.tune.run import run_tune
+from tgrf_jax.tune.spec import TuneSpec
 
 # --------------------------------------------------------------------------------------------- space
 
@@ -173,3 +177,79 @@ def test_explore_perturbs_by_the_stated_factors_without_resampling():
     assert donor[3] == 0 and list(donor[:3]) == [0, 1, 2]
     ratio = values[3] / float(state.hparams.lr[0])
     assert np.isclose(ratio, 0.8, rtol=1e-6) or np.isclose(ratio, 1.25, rtol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------- the tune
+
+
+TINY = str(pathlib.Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
+SPACE = ["reward.h_disc=0.5:5:log", "ppo.lr=1e-4:3e-3:log"]
+
+
+def _spec(**kw):
+    kw = {"population": 4, "interval": 4, "objective_episodes": 8, "final_episodes": 8, **kw}
+    return TuneSpec.create(TINY, SPACE, **kw)
+
+
+@pytest.mark.parametrize(
+    "kw, message",
+    [
+        ({"population": 1}, "--population 1"),
+        ({"population": 3, "fraction": 0.25}, "replaces no member"),
+        ({"interval": 12}, "--interval 12: allowed 1 .. 11"),
+        ({"interval": 0}, "--interval 0"),
+        ({"fraction": 0.75}, "--fraction"),
+        ({"resample_prob": 1.5}, "--resample"),
+        ({"objective": "succes"}, "unknown metric"),
+        ({"objective_episodes": 0}, "--objective-episodes"),
+    ],
+)
+def test_tune_spec_refuses_bad_settings(kw, message):
+    with pytest.raises(ConfigError, match=message):
+        _spec(**kw)
+
+
+def test_tune_spec_round_trips_and_draws_members_within_bounds():
+    spec = _spec()
+    assert TuneSpec.from_dict(spec.to_dict()) == spec
+    members = spec.members()
+    assert [m.seed for m in members] == [0, 1, 2, 3]
+    for m in members:
+        assert 0.5 <= m.values["reward.h_disc"] <= 5 and 1e-4 <= m.values["ppo.lr"] <= 3e-3
+        assert m.config.reward.h_disc == pytest.approx(m.values["reward.h_disc"])
+
+
+def _tune(tmp_path, name, **kw):
+    return run_tune(_spec(), tmp_path / name, log=lambda line: None, **kw)
+
+
+def test_tune_writes_its_outputs_and_resumes_bit_identically(tmp_path):
+    full = _tune(tmp_path, "full")
+    assert full.best is not None and np.isfinite(full.best_objective)
+    root = tmp_path / "full"
+    for name in ("tune.md", "lineage.csv", "schedule.csv", "lineage.png", "schedule.png", "tune.yaml"):
+        assert (root / name).is_file(), name
+    lineage = (root / "lineage.csv").read_text().splitlines()
+    assert len(lineage) == 1 + 2 * 4  # header, 2 steps x 4 members (updates 4 and 8 of 12)
+    best = root / "runs" / f"m{full.best:03d}"
+    assert (best / "eval.json").is_file() and (best / "checkpoints").is_dir()
+
+    # interrupted after update 6, then resumed: the same lineage and the same final states
+    _tune(tmp_path, "cut", stop_after_updates=6)
+    assert len((tmp_path / "cut" / "lineage.csv").read_text().splitlines()) == 1 + 4
+    resumed = run_tune(None, tmp_path / "cut", resume=True, log=lambda line: None)
+    assert resumed.best == full.best and resumed.best_objective == full.best_objective
+    assert (tmp_path / "cut" / "lineage.csv").read_text() == (root / "lineage.csv").read_text()
+
+    def final_results(directory):
+        return [json.loads((d / "eval.json").read_text())["results"] for d in sorted((directory / "runs").iterdir())]
+
+    assert final_results(tmp_path / "cut") == final_results(root)
+    assert (tmp_path / "cut" / "schedule.csv").read_text() == (root / "schedule.csv").read_text()
+
+
+def test_tune_refuses_an_existing_tune_directory(tmp_path):
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "tune.yaml").write_text("x: 1\n")
+    with pytest.raises(ConfigError, match="already holds a tune"):
+        run_tune(_spec(), tmp_path / "t", log=lambda line: None)

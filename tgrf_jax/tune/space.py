@@ -27,7 +27,7 @@ class SearchDim:
     log: bool = False
 
     def spec(self) -> str:
-        return f"{self.name}={self.low:g}:{self.high:g}" + (":log" if self.log else "")
+        return f"{self.name}={self.low!r}:{self.high!r}" + (":log" if self.log else "")  # exact round trip
 
 
 def searchable_fields() -> list[str]:

@@ -1,0 +1,330 @@
+"""`run_tune`: a population trained as one sweep program, with an exploit-and-explore step every `interval`
+updates, in a `RunDirectory` whose root is the tune directory.
+
+Tune directory:
+    tune.yaml              the tune: space, population, objective, schedule, each member's seed and start values
+    config.yaml            the resolved base config
+    progress.log, metrics.csv, checkpoints/, eval_curves.csv   as a sweep's (`tgrf_jax.sweep.run`)
+    runs/m000/ ...         one playable run directory per member (config.yaml with the member's final values,
+                           metrics.csv, eval.json, final checkpoint): `tgrf-eval runs/m003` works
+    lineage.csv            every exploit step: update, member, its score, the member it copied (itself if kept),
+                           its searched values after the step
+    lineage.png            which member copied which, when
+    schedule.csv / .png    the searched values along the best member's ancestry: the schedule the tune found
+    tune.md                the population table, the best member and its objective on a separate, larger test
+
+The exploit step runs inside the program's chunk (`TunedProgram.run_chunk`), so every checkpoint holds the state
+after it, and its random draws come from the run's seed and the update: a resumed tune repeats it bit for bit.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import functools
+import io
+import pathlib
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import yaml
+
+from tgrf_jax.config import ConfigError
+from tgrf_jax.storage.files import write_atomic
+from tgrf_jax.storage.lock import exclusive
+from tgrf_jax.sweep.program import BatchedProgram, evaluate_runs
+from tgrf_jax.sweep.report import RUNS_DIR
+from tgrf_jax.sweep.run import export_checkpoint
+from tgrf_jax.train.directory import CHECKPOINT_DIR, RunDirectory
+from tgrf_jax.train.outer_loop import train_program
+from tgrf_jax.tune.objective import parse_objective
+from tgrf_jax.tune.pbt import exploit_explore
+from tgrf_jax.tune.spec import TUNE_FILE, TuneSpec, load_tune
+
+CONFIG_FILE = "config.yaml"
+LINEAGE_FILE = "lineage.csv"
+SCHEDULE_FILE = "schedule.csv"
+REPORT_FILE = "tune.md"
+# the objective's test episodes come from a seed of their own, apart from the final test's (run.eval_seed)
+OBJECTIVE_SEED_OFFSET = 7_919
+
+
+@dataclasses.dataclass
+class TuneResult:
+    tune_dir: pathlib.Path
+    spec: TuneSpec
+    updates: int
+    best: int | None  # index of the best member (None until the tune is trained to its end)
+    best_objective: float | None  # on the final test
+
+
+class TunedProgram(BatchedProgram):
+    """A sweep's `BatchedProgram` whose chunks end, at every multiple of `interval` updates, with the
+    exploit-and-explore step over the population (`tgrf_jax.tune.pbt`)."""
+
+    def __init__(self, spec: TuneSpec, devices, say: Callable[[str], None]):
+        super().__init__(spec.members(), devices)
+        if self.g_pad != self.num_runs:
+            raise ConfigError(
+                f"--population {spec.population} must be a multiple of the {self.num_devices} devices the population "
+                f"is split over (or choose the devices with --devices)"
+            )
+        self.spec, self.say = spec, say
+        self.objective = parse_objective(spec.objective)
+        self.eval_runs = spec.evaluation_runs()
+        self.update = 0
+        self.steps: list[dict] = []  # exploit steps of this process since init/restore (for the lineage file)
+        self._step = None  # compiled on first use, for the state's placement
+        self._key_seed = spec.base["run"]["seed"]
+
+    def init(self):
+        self.update = 0
+        return super().init()
+
+    def restore(self, checkpointer, step: int):
+        state, update = super().restore(checkpointer, step)
+        self.update = update
+        return state, update
+
+    def scores(self, state) -> list[float]:
+        seed = self.spec.base["run"]["eval_seed"] + OBJECTIVE_SEED_OFFSET
+        evals = evaluate_runs(
+            self.batched, self.eval_runs, state.params, self.g_pad, self.spec.objective_episodes, seed
+        )
+        return [self.objective.score(e["results"]["learned"]) for e in evals]
+
+    def run_chunk(self, state, n_updates: int):
+        import jax
+        import jax.numpy as jnp
+
+        state, metrics = super().run_chunk(state, n_updates)
+        self.update += n_updates
+        if self.update % self.spec.interval == 0 and self.update < self.num_updates:
+            scores = self.scores(state)
+            key = jax.random.fold_in(jax.random.PRNGKey(self._key_seed), self.update)
+            if self._step is None:
+                self._step = _exploit_program(self.spec, jax.tree.map(lambda x: x.sharding, state))
+            state, record = self._step(state, jnp.asarray(scores, jnp.float32), key)
+            donors, values = np.asarray(record.donor), np.asarray(record.values)
+            self.steps.append({"update": self.update, "scores": scores, "donor": donors, "values": values})
+            best = int(np.argmax(scores))
+            copied = [f"{i}<-{d}" for i, d in enumerate(donors) if d != i]
+            self.say(
+                f"exploit at update {self.update}: best objective {scores[best]:.4f} (m{best:03d}); "
+                f"copied {', '.join(copied)}"
+            )
+        return state, metrics
+
+
+def _exploit_program(spec: TuneSpec, shardings):
+    """The exploit-and-explore step compiled for a state placed as `shardings` (each member stays on its device;
+    the copies between devices are the step's only transfers). The state is donated: the population's parameters
+    are updated where they live."""
+    import jax
+
+    step = functools.partial(exploit_explore, dims=spec.dims, fraction=spec.fraction, resample_prob=spec.resample_prob)
+    return jax.jit(
+        lambda state, scores, key: step(state, scores, key), donate_argnums=0, out_shardings=(shardings, None)
+    )
+
+
+class LineageWriter:
+    """A `state_fn` of the run directory: appends each exploit step of the program to lineage.csv, and on resume
+    cuts the file back to the checkpoint's update (`truncate`)."""
+
+    def __init__(self, path: pathlib.Path, program: TunedProgram, write: bool):
+        self.path, self.program, self.write = path, program, write
+        self.fields = ["update", "member", "score", "donor"] + [d.name for d in program.spec.dims]
+
+    def truncate(self, update: int) -> float:
+        if self.write and self.path.is_file():
+            rows = [r for r in _read_csv(self.path) if int(r["update"]) <= update]
+            write_atomic(self.path, _csv_text(self.fields, rows))
+        return 0.0
+
+    def __call__(self, update: int, state: Any) -> None:
+        steps = [s for s in self.program.steps if s["update"] == update]
+        if not steps or not self.write:
+            return
+        step = steps[-1]
+        rows = _read_csv(self.path) if self.path.is_file() else []
+        for i in range(self.program.num_runs):
+            row = {"update": update, "member": i, "score": step["scores"][i], "donor": int(step["donor"][i])}
+            row.update({d.name: float(step["values"][i, j]) for j, d in enumerate(self.program.spec.dims)})
+            rows.append(row)
+        write_atomic(self.path, _csv_text(self.fields, rows))
+
+
+def _read_csv(path: pathlib.Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _csv_text(fields: list[str], rows: list[dict]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=fields)
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+def ancestry_schedule(spec: TuneSpec, lineage: list[dict], member: int) -> list[dict]:
+    """The searched values along `member`'s ancestry, from its root ancestor's start values to the last step:
+    rows of {update, member (the ancestor holding the values then), field: value}."""
+    updates = sorted({int(r["update"]) for r in lineage})
+    by_step = {u: {int(r["member"]): r for r in lineage if int(r["update"]) == u} for u in updates}
+    rows, current = [], member
+    for u in reversed(updates):
+        row = by_step[u][current]
+        rows.append({"update": u, "member": current, **{d.name: float(row[d.name]) for d in spec.dims}})
+        current = int(row["donor"])
+    start = spec.members()[current]
+    rows.append({"update": 0, "member": current, **{d.name: start.values[d.name] for d in spec.dims}})
+    return rows[::-1]
+
+
+def run_tune(
+    spec: TuneSpec | None,
+    tune_dir,
+    *,
+    resume: bool = False,
+    log: Callable[[str], None] = print,
+    stop_after_updates: int | None = None,
+    num_devices: int | None = None,
+) -> TuneResult:
+    """Train the population of `spec` in `tune_dir` (or, with `spec=None, resume=True`, continue the tune there
+    from its latest checkpoint); at the end, score the best member on the final test and write the report."""
+    tune_dir = pathlib.Path(tune_dir)
+    if resume:
+        loaded = load_tune(tune_dir)
+        if spec is not None and spec.to_dict() != loaded.to_dict():
+            raise ConfigError(f"{str(tune_dir)!r} holds a different tune than the one given")
+        spec = loaded
+    elif (tune_dir / TUNE_FILE).exists():
+        raise ConfigError(f"tune directory {str(tune_dir)!r} already holds a tune; use --resume or another --out")
+    with exclusive(tune_dir):
+        return _run_tune(spec, tune_dir, resume, log, stop_after_updates, num_devices)
+
+
+def _devices(num_devices):
+    import jax
+
+    devices = jax.devices()
+    if num_devices is not None:
+        if not 1 <= num_devices <= len(devices):
+            raise ConfigError(f"--devices {num_devices}: allowed 1..{len(devices)} (devices: {len(devices)})")
+        devices = devices[:num_devices]
+    return devices
+
+
+def _run_tune(spec: TuneSpec, tune_dir: pathlib.Path, resume, log, stop_after_updates, num_devices) -> TuneResult:
+    import jax
+
+    members = spec.members()
+    run_dirs = [tune_dir / RUNS_DIR / m.name for m in members]
+    if not resume:
+        tune_dir.mkdir(parents=True, exist_ok=True)
+        write_atomic(tune_dir / CONFIG_FILE, spec.base_config.to_yaml())
+        write_atomic(tune_dir / TUNE_FILE, yaml.safe_dump(spec.to_dict(), sort_keys=False))
+        for m, d in zip(members, run_dirs):
+            d.mkdir(parents=True, exist_ok=True)
+            write_atomic(d / CONFIG_FILE, m.config.to_yaml())
+    run_cfg = members[0].config.run
+    columns = [dict(run=m.name, point=m.point, seed=m.seed, **m.values) for m in members]
+    say_box: list[Callable[[str], None]] = [log]
+    program = TunedProgram(spec, _devices(num_devices), lambda line: say_box[0](line))
+    with RunDirectory.open(
+        tune_dir, program, run_cfg, run_dirs=run_dirs, columns=columns, log=log, where="tune dir"
+    ) as directory:
+        say_box[0] = directory.say
+        lineage = LineageWriter(tune_dir / LINEAGE_FILE, program, write=True)
+        directory = dataclasses.replace(
+            directory, state_fns=(*directory.state_fns, lineage), cut_every=(*directory.cut_every, spec.interval)
+        )
+        say = directory.say
+        say(spec.describe())
+        out = train_program(program, directory, run_cfg, resume=resume, stop_after_updates=stop_after_updates)
+        result = TuneResult(tune_dir, spec, out.updates, None, None)
+        if out.updates < program.num_updates:
+            return result
+        host_state = program.host_state(out.state)
+        final = _final_values(spec, program, out.state)
+        for i, (m, d) in enumerate(zip(members, run_dirs)):
+            data = m.config.to_dict()
+            for name, value in final[i].items():
+                section, field = name.split(".", 1)
+                data[section][field] = value
+            write_atomic(d / CONFIG_FILE, yaml.safe_dump(data, sort_keys=False))
+            export_checkpoint(
+                d / CHECKPOINT_DIR,
+                out.updates,
+                jax.tree_util.tree_map(lambda x, i=i: x[i], host_state),
+                run_cfg.keep_checkpoints,
+            )
+        scores = program.scores(out.state)
+        best = int(np.argmax(scores))
+        final_eval = evaluate_runs(
+            program.batched,
+            program.eval_runs,
+            out.state.params,
+            program.g_pad,
+            spec.final_episodes,
+            spec.base["run"]["eval_seed"],
+        )[best]["results"]["learned"]
+        result.best, result.best_objective = best, program.objective.score(final_eval)
+        lineage_rows = _read_csv(tune_dir / LINEAGE_FILE) if (tune_dir / LINEAGE_FILE).is_file() else []
+        schedule = ancestry_schedule(spec, lineage_rows, best)
+        write_atomic(tune_dir / SCHEDULE_FILE, _csv_text(["update", "member", *[d.name for d in spec.dims]], schedule))
+        report = format_report(spec, scores, final, best, result.best_objective, final_eval, out.evals, schedule)
+        write_atomic(tune_dir / REPORT_FILE, report)
+        from tgrf_jax.tune.plots import plot_lineage, plot_schedule
+
+        directory.plot(lambda: plot_lineage(tune_dir / "lineage.png", spec, lineage_rows))
+        directory.plot(lambda: plot_schedule(tune_dir / "schedule.png", spec, schedule))
+        say(
+            f"best member: {members[best].name} (objective {scores[best]:.4f} on {spec.objective_episodes} episodes, "
+            f"{result.best_objective:.4f} on the final {spec.final_episodes}); {run_dirs[best]}"
+        )
+        directory.done(out, program)
+    return result
+
+
+def _final_values(spec: TuneSpec, program: TunedProgram, state) -> list[dict]:
+    from tgrf_jax.tune.pbt import get_values
+
+    values = np.asarray(get_values(program.host_state(state).hparams, spec.dims))
+    return [{d.name: float(values[i, j]) for j, d in enumerate(spec.dims)} for i in range(program.num_runs)]
+
+
+def format_report(spec, scores, final, best, best_objective, final_eval, evals, schedule) -> str:
+    """tune.md: the population at the end, the best member, and its schedule."""
+    names = [d.name for d in spec.dims]
+    lines = [
+        "# Tune",
+        "",
+        f"Objective `{spec.objective}`; population {spec.population}; exploit every {spec.interval} updates.",
+        "",
+        f"| member | objective ({spec.objective_episodes} episodes) | final test SR | "
+        + " | ".join(f"`{n}`" for n in names)
+        + " |",
+        "|---" * (3 + len(names)) + "|",
+    ]
+    for i, score in enumerate(scores):
+        sr = (evals[i]["results"]["learned"].get("success_rate") if evals else None) or float("nan")
+        mark = " **best**" if i == best else ""
+        values = " | ".join(f"{final[i][n]:.4g}" for n in names)
+        lines.append(f"| m{i:03d}{mark} | {score:.4f} | {100 * sr:.1f}% | {values} |")
+    lines += [
+        "",
+        f"Best member m{best:03d}: objective {best_objective:.4f} on a separate test of {spec.final_episodes} episodes "
+        f"(success {100 * final_eval['success_rate']:.1f}%, collision {100 * final_eval['collision_rate']:.1f}%).",
+        "",
+        "Its schedule (the values along its ancestry, `schedule.csv`):",
+        "",
+        "| update | held by | " + " | ".join(f"`{n}`" for n in names) + " |",
+        "|---" * (2 + len(names)) + "|",
+    ]
+    for row in schedule:
+        lines.append(f"| {row['update']} | m{row['member']:03d} | " + " | ".join(f"{row[n]:.4g}" for n in names) + " |")
+    return "\n".join(lines) + "\n"
