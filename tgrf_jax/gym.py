@@ -117,6 +117,11 @@ def _seed_key(seed) -> jax.Array:
     return jax.random.PRNGKey(int(seed))
 
 
+def _where(rows, a, b):
+    """Per environment (leading axis): `a` where `rows` (B,) is True, else `b`."""
+    return jnp.where(rows.reshape(rows.shape + (1,) * (a.ndim - 1)), a, b)
+
+
 def _render_mode(mode: str | None) -> str | None:
     if mode is not None and mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be None or one of {list(RENDER_MODES)}, got {mode!r}")
@@ -245,7 +250,7 @@ class CrowdNavGymEnv(gymnasium.Env):
 
     metadata: ClassVar[dict] = {"render_modes": list(RENDER_MODES), "render_fps": 4}
 
-    def __init__(self, config=None, reward="tgrf", params=None, render_mode: str | None = None):
+    def __init__(self, config: Any = None, reward: Any = "tgrf", params: Any = None, render_mode: str | None = None):
         self.env, self.params = _make_env(config, reward, params)
         self.observation_space, self.action_space = _spaces(self.env, self.params)
         self.render_mode = _render_mode(render_mode)
@@ -265,7 +270,7 @@ class CrowdNavGymEnv(gymnasium.Env):
         if self._closed:
             raise RuntimeError(f"{call}() after close(): this environment is closed; make a new one")
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         self._check_open("reset")
         super().reset(seed=seed)
         # Keys come from the seeded np_random, so reset(seed=s) repeats and later unseeded resets keep varying.
@@ -277,7 +282,7 @@ class CrowdNavGymEnv(gymnasium.Env):
             self._history, self._rewards, self._outcomes = [jax.device_get(self._snapshot(flat, self._state))], [], []
         return np.asarray(flat), {}
 
-    def step(self, action):
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         self._check_open("step")
         if self._state is None:
             raise RuntimeError("call reset() before step()")
@@ -331,13 +336,13 @@ class CrowdNavVectorEnv(VectorEnv):
     def __init__(
         self,
         num_envs: int,
-        config=None,
-        reward="tgrf",
-        params=None,
+        config: Any = None,
+        reward: Any = "tgrf",
+        params: Any = None,
         num_resets: int | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         render_mode: str | None = None,
-    ):
+    ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         self.env, self.params = _make_env(config, reward, params)
@@ -363,15 +368,12 @@ class CrowdNavVectorEnv(VectorEnv):
 
         def reset_some(key, state, obs, mask):
             fresh_obs, fresh = reset(key)
-            pick = lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
-            return pick(fresh_obs, obs), jax.tree_util.tree_map(pick, fresh, state)
+            return _where(mask, fresh_obs, obs), jax.tree_util.tree_map(lambda a, b: _where(mask, a, b), fresh, state)
 
         def step(key, state, action, hold):
             obs, new_state, reward, terminated, truncated, info = env.step_batch(key, state, action, p, resets)
             # environments held this step keep their state (NEXT_STEP: the fresh episode their last step drew)
-            new_state = jax.tree_util.tree_map(
-                lambda new, old: jnp.where(hold.reshape(hold.shape + (1,) * (new.ndim - 1)), old, new), new_state, state
-            )
+            new_state = jax.tree_util.tree_map(lambda new, old: _where(hold, old, new), new_state, state)
             return _flat(obs), new_state, reward, terminated, truncated, _flat(info.final_obs), _info(info)
 
         self._reset = jax.jit(reset)
@@ -388,7 +390,7 @@ class CrowdNavVectorEnv(VectorEnv):
         if self.closed:
             raise RuntimeError(f"{call}() after close(): this environment is closed; make a new one")
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         """Reset every environment, or with options={'reset_mask': (B,) bool} only those flagged."""
         self._check_open("reset")
         unknown = sorted(set(options or {}) - {"reset_mask"})
@@ -414,7 +416,7 @@ class CrowdNavVectorEnv(VectorEnv):
         self._obs = np.asarray(obs)
         return self._obs.copy(), {}
 
-    def step(self, actions):
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         self._check_open("step")
         if self._state is None:
             raise RuntimeError("call reset() before step()")
@@ -476,19 +478,19 @@ class CrowdNavVectorEnv(VectorEnv):
             _frame(self.env, self.params, [{k: v[i] for k, v in snaps.items()}], [], []) for i in range(self.num_envs)
         )
 
-    def close_extras(self, **kwargs) -> None:
+    def close_extras(self, **kwargs: Any) -> None:
         self._state = None
 
 
 def _make_vec(
     num_envs: int = 1,
-    config=None,
-    reward="tgrf",
-    params=None,
-    num_resets=None,
+    config: Any = None,
+    reward: Any = "tgrf",
+    params: Any = None,
+    num_resets: int | None = None,
     autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     render_mode: str | None = None,
-    **kwargs,
+    **kwargs: Any,
 ) -> CrowdNavVectorEnv:
     if kwargs:
         raise ValueError(f"unknown arguments {sorted(kwargs)} for {ENV_ID}'s vector env")

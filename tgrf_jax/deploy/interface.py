@@ -215,7 +215,7 @@ def _first_difference(a, b, where: str = "") -> tuple[str, object, object] | Non
     return None if a == b else (where.lstrip(".") or "(the whole file)", a, b)
 
 
-def check_interface(directory, config: TrainConfig, params, meta: dict) -> None:
+def check_interface(directory: str | pathlib.Path, config: TrainConfig, params: dict, meta: dict) -> None:
     """Refuse an exported directory whose interface.json differs from the one its config.yaml, parameters and
     meta.json give (ConfigError naming the file and the first differing entry)."""
     directory = pathlib.Path(directory)

@@ -224,12 +224,10 @@ class _GstTracker:
         return out
 
     def snapshot(self) -> tuple:
-        """Everything `predictions` changes, for `restore` (arrays copied)."""
-        copy = lambda a: None if a is None else a.copy()  # noqa: E731
+        """Everything `predictions` changes, for `restore` (arrays copied: `_forget` writes into them)."""
+        arrays = (self.positions, self.visible, self.robot_hist)
         return (
-            copy(self.positions),
-            copy(self.visible),
-            copy(self.robot_hist),
+            *(None if a is None else a.copy() for a in arrays),
             list(self.owner),
             self.last_seen.copy(),
             self.frame,
@@ -288,7 +286,7 @@ class Navigator:
         step: int | None = None,
         threads: int = 1,
         default_human_radius: float | None = None,
-    ):
+    ) -> None:
         self.source = source if isinstance(source, PolicySource) else load_source(source, step=step)
         env = self.source.config.env
         if env.predictor == "truth":
@@ -316,7 +314,7 @@ class Navigator:
         self.lidar_invalid_total = 0
         self.reset()
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         lidar = f", lidar_rays={self.lidar_rays}" if self.lidar_rays else ""
         return (
             f"Navigator({self.source.config.network.name}/{self.source.config.network.size}, "

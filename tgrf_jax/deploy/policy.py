@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+from collections.abc import Callable
 
 import numpy as np
 
@@ -34,7 +35,7 @@ FORMATS = tuple(FORMAT_FILES)
 class PolicyStep:
     """The single-decision function of a trained network (see the module docstring) and its sizes."""
 
-    def __init__(self, config: TrainConfig, params):
+    def __init__(self, config: TrainConfig, params: dict) -> None:
         import jax
 
         from tgrf_jax.policies import make_network_for
@@ -66,7 +67,7 @@ class PolicyStep:
 
         return np.concatenate([np.asarray(leaf)[0].reshape(-1) for leaf in jax.tree_util.tree_leaves(carry)])
 
-    def __call__(self, robot_node, robot_vel, humans, human_mask, *rest):
+    def __call__(self, robot_node, robot_vel, humans, human_mask, *rest) -> tuple:
         """(robot_node, robot_vel, humans, human_mask[, lidar], state) -> (action, new_state): `lidar` exactly
         when the policy reads a scan (see `input_names`)."""
         import jax
@@ -108,13 +109,13 @@ class PolicyStep:
         new_state = jnp.concatenate([leaf.reshape(-1) for leaf in jax.tree_util.tree_leaves(carry)])
         return pi.mean()[0], new_state
 
-    def jitted(self):
+    def jitted(self) -> Callable:
         import jax
 
         return jax.jit(self.__call__)
 
 
-def read_interface(directory) -> dict:
+def read_interface(directory: str | pathlib.Path) -> dict:
     """An exported directory's interface.json as it is on disk (`tgrf_jax.deploy.load_source` checks it against
     the policy)."""
     path = pathlib.Path(directory) / INTERFACE_FILE

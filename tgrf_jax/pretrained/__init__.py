@@ -100,7 +100,7 @@ def _read_meta(path: pathlib.Path) -> dict:
     return meta
 
 
-def check_params(config: TrainConfig, params, where: str) -> dict[str, np.ndarray]:
+def check_params(config: TrainConfig, params: dict, where: str) -> dict[str, np.ndarray]:
     """The parameters flattened ('/'-joined names), after checking them against the config's network: the same
     names, shapes and dtypes, every value finite. `where` names their file or origin in the ConfigError."""
     import jax
@@ -130,7 +130,7 @@ def check_params(config: TrainConfig, params, where: str) -> dict[str, np.ndarra
     return flat
 
 
-def load(name_or_path: str):
+def load(name_or_path: str) -> tuple[TrainConfig, dict, dict]:
     """(TrainConfig, params, meta) of a pretrained policy. Refuses (ConfigError, one line naming the file) a
     directory whose files do not match its manifest, an unreadable file, and parameters that do not fit the
     config's network or are not finite."""
@@ -149,7 +149,7 @@ def load(name_or_path: str):
     return config, _unflatten(flat), meta
 
 
-def write_policy(directory: pathlib.Path, config: TrainConfig, params, meta: dict) -> None:
+def write_policy(directory: pathlib.Path, config: TrainConfig, params: dict, meta: dict) -> None:
     """Write the pretrained format's files (`FILES`) into `directory`, refusing parameters `check_params` would.
     The manifest is the directory writer's (`tgrf_jax.pretrained.directory.writing`), written last."""
     flat = check_params(config, params, "the policy's parameters")
@@ -158,7 +158,9 @@ def write_policy(directory: pathlib.Path, config: TrainConfig, params, meta: dic
     (directory / "meta.json").write_text(json.dumps(meta, indent=2))
 
 
-def export(run_dir, dest, meta: dict | None = None, step: int | None = None) -> pathlib.Path:
+def export(
+    run_dir: str | pathlib.Path, dest: str | pathlib.Path, meta: dict | None = None, step: int | None = None
+) -> pathlib.Path:
     """Write the policy of a tgrf-train run directory (latest checkpoint unless `step`) to `dest` atomically,
     replacing an existing `dest`."""
     import jax
