@@ -665,6 +665,13 @@ def test_navigator_refuses_nan_weights_in_every_runtime(nan_weights, runtime):
         Navigator(nan_weights, runtime=runtime)
 
 
+def test_navigator_refuses_nan_weights_built_in_memory(const_vel):
+    params = jax.tree_util.tree_map(np.array, const_vel.params)
+    params["params"]["robot_linear"]["kernel"][0, 0] = np.nan
+    with pytest.raises(ConfigError, match=r"the policy's parameters: params/robot_linear/kernel holds 1 non-finite"):
+        Navigator(PolicySource(const_vel.config, params, {"test": "nan"}))
+
+
 def test_tools_refuse_a_damaged_directory(nan_weights, exported, tmp_path, capsys):
     from tgrf_jax.cli import eval_main
     from tgrf_jax.cli.export import main as export_main

@@ -36,6 +36,7 @@ from tgrf_jax.config import MAX_BODY_RADIUS, ConfigError
 from tgrf_jax.deploy.policy import PolicyStep
 from tgrf_jax.deploy.runtimes import make_runtime
 from tgrf_jax.deploy.source import PolicySource, load_source
+from tgrf_jax.pretrained import check_params
 
 log = logging.getLogger(__name__)
 
@@ -287,6 +288,8 @@ class Navigator:
         threads: int = 1,
         default_human_radius: float | None = None,
     ) -> None:
+        if isinstance(source, PolicySource):  # load_source checks what it loads; a source built in memory too
+            check_params(source.config, source.params, "the policy's parameters")
         self.source = source if isinstance(source, PolicySource) else load_source(source, step=step)
         env = self.source.config.env
         if env.predictor == "truth":
