@@ -7,9 +7,10 @@ the crowd mid-crossing, where ORCA is slowest, as in training). For batches of 1
 `CrowdNavEnv.step_batch`, the trainer's auto-reset, which samples B / 8 fresh episodes per step instead of B
 (`ppo.reset_ratio: 8`), and the same split over D CPU devices (`--devices`, default: one per core), each
 stepping B / D envs under `shard_map`, as the trainer's env shards do: one XLA program spreads its small ops
-over the cores poorly, D programs side by side do not. In the same run, Python-RVO2's raw 20-agent doStep rate is timed as the on-machine
-reference for a compiled ORCA step. Rows with predictor `gst` run the learned predictor (the shipped weights) inside
-every step; its XLA-counted FLOPs per env step are printed beside them (`--gst-only`: just const_vel against gst).
+over the cores poorly, D programs side by side do not. In the same run, Python-RVO2's raw 20-agent doStep rate is
+timed as the on-machine reference for a compiled ORCA step. Rows with predictor `gst` run the learned predictor (the
+shipped weights) inside every step; its XLA-counted FLOPs per env step are printed beside them (`--gst-only`: just
+const_vel against gst).
 
     python -m benchmarks.env_throughput --quick --out bench_results/env_quick.json
     python -m benchmarks.env_throughput --out bench_results/env_full.json
@@ -335,7 +336,7 @@ def main(argv=None):
     print(f"Python-RVO2 raw doStep, 20 agents, one core: {rvo2:,.0f} steps/s")
     rate = lambda r: max(
         r.get("env_steps_per_s", 0.0),
-        r.get("step_batch_env_steps_per_s", 0.0),  # noqa: E731
+        r.get("step_batch_env_steps_per_s", 0.0),
         r.get("step_batch_devices_env_steps_per_s", 0.0),
     )
     best = max(

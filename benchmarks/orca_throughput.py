@@ -50,7 +50,7 @@ def random_scenes(n_scenes: int, n_agents: int, seed: int = 0) -> dict:
     vel = np.stack([np.cos(ang), np.sin(ang)], -1) * (rng.uniform(0, 1, shape) * max_speed)[..., None]
     d = goal - pos
     pref = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1.0)
-    f = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    f = lambda x: np.asarray(x, np.float32)
     return dict(
         pos=f(pos), vel=f(vel), radius=f(rng.uniform(0.3, 0.5, shape) + 0.16), pref=f(pref), max_speed=f(max_speed)
     )
@@ -66,7 +66,7 @@ def crossing_states(n_scenes: int, n_agents: int, seed: int = 0, n_rollouts: int
     rng = np.random.default_rng(seed)
     ang = np.linspace(0, 2 * np.pi, n_agents, endpoint=False)[None] + rng.uniform(-0.1, 0.1, (n_rollouts, n_agents))
     pos0 = np.stack([np.cos(ang), np.sin(ang)], -1) * 8.0 + rng.normal(0, 0.05, (n_rollouts, n_agents, 2))
-    f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    f = lambda x: jnp.asarray(x, jnp.float32)
     pos0, goal = f(pos0), f(-pos0)
     radius = f(rng.uniform(0.3, 0.5, (n_rollouts, n_agents)) + 0.16)
     max_speed = f(rng.uniform(0.5, 1.5, (n_rollouts, n_agents)))

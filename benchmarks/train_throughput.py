@@ -47,8 +47,8 @@ def learner_flops_per_update(tr, state) -> float:
     t = p.num_steps
     obs = tr.net.dummy_obs(1)
     obs = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((t, envs) + x.shape[1:], x.dtype), obs)
-    f32 = lambda: jax.ShapeDtypeStruct((t, envs), jnp.float32)  # noqa: E731
-    flag = lambda: jax.ShapeDtypeStruct((t, envs), bool)  # noqa: E731
+    f32 = lambda: jax.ShapeDtypeStruct((t, envs), jnp.float32)
+    flag = lambda: jax.ShapeDtypeStruct((t, envs), bool)
     batch = Transition(
         obs=obs,
         resets=flag(),

@@ -43,7 +43,7 @@ def random_scene(rng: np.random.Generator, n: int = 20, side: float = 8.0) -> Sc
     speed = rng.uniform(0, 1, n) * max_speed
     vel = np.stack([np.cos(ang), np.sin(ang)], -1) * speed[:, None]
     goal = rng.uniform(-side / 2 - 2, side / 2 + 2, (n, 2))
-    f = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    f = lambda x: np.asarray(x, np.float32)
     return Scene(f(pos), f(vel), f(radius), pref_towards(f(pos), f(goal)), f(max_speed))
 
 
@@ -127,7 +127,7 @@ def random_obstacles(rng: np.random.Generator, kind: str, side: float = 10.0) ->
     boxes), 'mixed' (L shapes, boxes and a wall), 'doorway' (a wall across with a gap, and a box), 'corridor'
     (two parallel walls with an L at one end)."""
     h = side / 2
-    u = lambda lo, hi, size=None: rng.uniform(lo, hi, size)  # noqa: E731
+    u = lambda lo, hi, size=None: rng.uniform(lo, hi, size)
     if kind == "walls":
         out = []
         for _ in range(rng.integers(2, 5)):

@@ -116,7 +116,7 @@ def test_rotate_scan_by_whole_rays_is_a_circular_shift():
 def test_rotate_scan_interpolates_between_rays():
     rays = 72
     theta = 2 * np.pi * np.arange(rays) / rays
-    smooth = lambda t: 3.0 + np.cos(t) + 0.5 * np.sin(2 * t)  # noqa: E731
+    smooth = lambda t: 3.0 + np.cos(t) + 0.5 * np.sin(2 * t)
     scan = jnp.asarray(smooth(theta), jnp.float32)
     step = 2 * np.pi / rays
     # half a ray: the mean of the two neighbours
@@ -171,8 +171,8 @@ def scene_obs(angle, shift, rays, turn_heading):
     shifted, its scan recomputed by the env's LiDAR. turn_heading: the robot's heading turns with the scene (a
     unicycle); otherwise it stays pi/2 (the env's holonomic robot), so the body-frame scan itself turns."""
     c, s = math.cos(angle), math.sin(angle)
-    move = lambda p: np.asarray(p, np.float64) @ np.array([[c, s], [-s, c]]) + shift  # noqa: E731
-    turn = lambda v: np.asarray(v, np.float64) @ np.array([[c, s], [-s, c]])  # noqa: E731
+    move = lambda p: np.asarray(p, np.float64) @ np.array([[c, s], [-s, c]]) + shift
+    turn = lambda v: np.asarray(v, np.float64) @ np.array([[c, s], [-s, c]])
     robot, goal = move([0.5, -1.0]), move([3.0, 2.5])
     humans = move([[1.5, 0.4], [-1.0, 1.2]])
     radii = np.array([0.3, 0.4])
@@ -182,7 +182,7 @@ def scene_obs(angle, shift, rays, turn_heading):
     ]
     obstacles = obstacles_lib.from_polygons(polygons)
     heading = np.pi / 2 + (angle if turn_heading else 0.0)
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
     scan = obstacles_lib.lidar_scan(
         f32(robot), f32(heading), obstacles, f32(humans), f32(radii), jnp.ones(2, bool), num_rays=rays, max_range=5.0
     )

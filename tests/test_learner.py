@@ -52,7 +52,7 @@ def _loss_inputs(values, old_values):
     log_std = rng.normal(scale=0.3, size=(4, 4, 2))
     action = mean + rng.normal(size=(4, 4, 2)) * np.exp(log_std)
     old_log_prob = _gaussian_log_prob(action, mean, log_std) - np.log(RATIOS)
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
     params = {"mean": f32(mean), "log_std": f32(log_std), "values": f32(values)}
     zeros = jnp.zeros((4, 4), jnp.float32)
     batch = Transition(

@@ -312,7 +312,7 @@ def test_gru_cell_matches_torch_equations():
     q = {k: np.asarray(v, np.float64) for k, v in p["params"].items()}
     wi, wh = np.split(q["w_i"], 3, 1), np.split(q["w_h"], 3, 1)
     bi, bh = np.split(q["b_i"], 3), np.split(q["b_h"], 3)
-    sig = lambda a: 1 / (1 + np.exp(-a))  # noqa: E731
+    sig = lambda a: 1 / (1 + np.exp(-a))
     xn, hn = np.asarray(x, np.float64), np.asarray(h, np.float64)
     r = sig(xn @ wi[0] + bi[0] + hn @ wh[0] + bh[0])
     z = sig(xn @ wi[1] + bi[1] + hn @ wh[1] + bh[1])

@@ -45,7 +45,7 @@ def _stack(scenes):
 
 @functools.partial(jax.jit, static_argnames="block")
 def _solve_env_batch(pos, vel, radius, pref, max_speed, block=None):
-    solve = lambda *a: orca.solve_with_info(*a, **ENV_SETTINGS, block=block)  # noqa: E731
+    solve = lambda *a: orca.solve_with_info(*a, **ENV_SETTINGS, block=block)
     return jax.vmap(solve)(pos, vel, radius, pref, max_speed)
 
 
@@ -57,7 +57,7 @@ def _perturbed_circle(rng, n=20, ring=8.0):
     radius = rng.uniform(0.3, 0.5, n) + 0.16
     max_speed = rng.uniform(0.5, 1.5, n)
     vel = -pos / np.linalg.norm(pos, axis=1, keepdims=True) * max_speed[:, None] * rng.uniform(0.5, 1.0, (n, 1))
-    f = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    f = lambda x: np.asarray(x, np.float32)
     return Scene(f(pos), f(vel), f(radius), pref_towards(f(pos), f(-pos)), f(max_speed))
 
 
@@ -245,7 +245,7 @@ def _clamped_pref(scene):
 
 
 def test_coincident_and_degenerate_agents_are_finite():
-    f = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    f = lambda x: np.asarray(x, np.float32)
     pos = f([[0, 0], [0, 0], [0, 0], [0.1, 0], [3, 3], [3, 3]])
     vel = f([[0, 0], [0, 0], [1, 0], [0, 0], [0.5, 0.5], [0.5, 0.5]])  # identical pos + vel: RVO2 gives NaN
     pref = f([[0, 0], [1, 0], [0, 0], [-1, 0], [0, 0], [0, 0]])

@@ -61,7 +61,7 @@ def _pressed_crowd(rng, n=20):
     ang = rng.uniform(np.pi / 4, 3 * np.pi / 4, n)  # heading into the wall
     vel = np.stack([np.cos(ang), np.sin(ang)], -1) * (rng.uniform(0.3, 1.0, n) * max_speed)[:, None]
     goal = np.stack([rng.uniform(-3, 3, n), np.full(n, 3.0)], -1)
-    f = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    f = lambda x: np.asarray(x, np.float32)
     return Scene(f(pos), f(vel), radius, pref_towards(f(pos), f(goal)), f(max_speed)), polys
 
 
@@ -386,7 +386,7 @@ def test_obstacles_without_agent_neighbours_match_rvo2():
 
 def test_degenerate_geometry_is_finite():
     """Agents on a wall, on a vertex, inside a box; zero-length edges, a repeated vertex, a 1-vertex slot."""
-    f = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    f = lambda x: np.asarray(x, np.float32)
     polys = [
         wall((0, 0), (2, 0)),
         wall((3, 3), (3, 3)),

@@ -65,7 +65,7 @@ def test_matches_reference(ref, params, fns, batch):
     np.testing.assert_array_equal(means[~out_mask], np.repeat(traj[:, :, -1:], 5, 2)[~out_mask])
     np.testing.assert_allclose(np.asarray(out.sigmas), expected[..., 2:4], atol=TOL, rtol=0)
     np.testing.assert_allclose(np.asarray(out.rho), expected[..., 4], atol=TOL, rtol=0)
-    per_step = lambda x: np.swapaxes(np.asarray(x), 1, 2)  # noqa: E731  (env, human, k) -> (env, k, human)
+    per_step = lambda x: np.swapaxes(np.asarray(x), 1, 2)  # (env, human, k) -> (env, k, human)
     np.testing.assert_allclose(per_step(steps.mu), ref["raw_mu" + batch], atol=TOL, rtol=0)
     np.testing.assert_allclose(per_step(steps.sigma[..., 0]), ref["raw_sx" + batch][..., 0], atol=TOL, rtol=0)
     np.testing.assert_allclose(per_step(steps.sigma[..., 1]), ref["raw_sy" + batch][..., 0], atol=TOL, rtol=0)

@@ -97,7 +97,7 @@ def test_ade_mean_loss_fits_means_by_distance_and_spreads_by_nll():
             mu=mu, sigma=jnp.full((3, 3, 5, 2), sigma), corr=jnp.zeros((3, 3, 5)), out_mask=jnp.ones((3, 3), bool)
         )
 
-    mean_grad = lambda sigma, mean_loss: np.asarray(  # noqa: E731
+    mean_grad = lambda sigma, mean_loss: np.asarray(
         jax.grad(lambda m: train_lib.gaussians_loss(g(sigma).replace(mu=m), batch, mean_loss))(mu)
     )
     # under "ade" the pull on the means does not depend on the predicted spread; under the NLL it does
@@ -125,10 +125,10 @@ def test_ade_loss_shapes_the_network_by_position_error_only():
     def forward_and_spread_grads(p):
         out = {}
         for detach in (True, False):
-            model = lambda q, detach=detach: jax.vmap(  # noqa: E731 (a one-line model per variant)
+            model = lambda q, detach=detach: jax.vmap(  # (a one-line model per variant)
                 lambda b: step_gaussians(q, b.positions, b.visible, detach_spreads=detach)
             )(batch)
-            spread_loss = lambda q, model=model: train_lib.gaussians_loss(  # noqa: E731 (as the model)
+            spread_loss = lambda q, model=model: train_lib.gaussians_loss(  # (as the model)
                 model(q).replace(mu=jnp.zeros((3, 3, 5, 2))), batch, "nll"
             )
             out[detach] = (model(p), jax.grad(spread_loss)(p))

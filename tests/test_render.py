@@ -115,7 +115,7 @@ def test_visibility_matches_the_env(episodes, env):
             # The observation's rows are the visible humans (visible first, sorted by distance).
             observed = ep.obs_human_pos[t][ep.obs_mask[t]]
             expected = ep.human_pos[t][vis]
-            order = lambda a: a[np.lexsort(a.T)]  # noqa: E731
+            order = lambda a: a[np.lexsort(a.T)]
             np.testing.assert_allclose(order(observed), order(expected), atol=1e-4)
             assert np.all(ep.obs_mask[t][: vis.sum()])
     assert seen_both, "the test scene should show visible and unseen humans in the same frame"
@@ -471,7 +471,7 @@ def test_cli_renders_run_dir(tmp_path, capsys):
 )
 def test_cli_errors_before_compiling(tmp_path, capsys, args, message):
     (tmp_path / "cfg.yaml").write_text("env:\n  num_humans: 3\n")
-    fmt = lambda s: s.replace("{tmp}", str(tmp_path))  # noqa: E731
+    fmt = lambda s: s.replace("{tmp}", str(tmp_path))
     args = [fmt(a) for a in args]
     if "--out" not in args:
         args += ["--out", str(tmp_path / "out")]

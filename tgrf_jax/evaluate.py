@@ -148,7 +148,7 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
             state.humans.radius,
             state.humans.active,
         )
-        add = lambda total, x: total + jnp.where(alive, x, 0)  # noqa: E731
+        add = lambda total, x: total + jnp.where(alive, x, 0)
         stats = EpisodeStats(
             outcome=jnp.where(alive & done, info.outcome, stats.outcome),
             time=jnp.where(alive & done, info.time, stats.time),

@@ -227,7 +227,9 @@ def format_table(exp: Experiment, records: list[dict]) -> str:
         first = True
         for rec in (r for r in records if r["value"] == str(value)):
             has_paper = "paper_sr" in rec
-            pp = lambda k, fmt="{:.2f}": _num(rec.get(f"paper_{k}"), fmt) if has_paper else None
+            pp = lambda k, fmt="{:.2f}", rec=rec, has_paper=has_paper: (
+                _num(rec.get(f"paper_{k}"), fmt) if has_paper else None
+            )
             sr_mean = (
                 rec["damaged"]
                 if "damaged" in rec

@@ -3,9 +3,10 @@ one compiled update (a scan of updates per call), orbax checkpoints with bit-ide
 
 CrowdNav++'s GST training recipe (Huang et al., RA-L 2022; docs/predictor.md) is `mean_loss="nll"`,
 `dropout=0.1`, `cv_prior=False`, Adam at lr 1e-3 multiplied by 0.3 every quarter of the run, 64 windows per
-update. The defaults differ where the simulator's crowds showed it matters (docs/predictor.md): the means are fitted to the position error (`mean_loss="ade"`), on top of the
-constant-velocity prior, without dropout. The reference trains 100 epochs over ~160k windows; our datasets hold
-~10x more windows, so a run is counted in updates, not epochs."""
+update. The defaults differ where the simulator's crowds showed it matters (docs/predictor.md): the means are fitted
+to the position error (`mean_loss="ade"`), on top of the constant-velocity prior, without dropout. The reference
+trains 100 epochs over ~160k windows; our datasets hold ~10x more windows, so a run is counted in updates, not
+epochs."""
 
 from __future__ import annotations
 
@@ -126,8 +127,8 @@ def gaussians_loss(g: StepGaussians, batch: data_lib.Batch, mean_loss: str = "nl
     pairs.
 
     "nll": the Gaussian NLL fits means, spreads and correlations together (CrowdNav++'s GST recipe). "ade": the
-    means are fitted to the Euclidean error of the predicted positions (what ADE / FDE measure), and the NLL, with the means held
-    fixed, fits the spreads and correlations. Under the NLL the heavy-tailed errors of a crowd (abrupt goal
+    means are fitted to the Euclidean error of the predicted positions (what ADE / FDE measure), and the NLL, with the
+    means held fixed, fits the spreads and correlations. Under the NLL the heavy-tailed errors of a crowd (abrupt goal
     changes) pull the means away from the typical path: on ORCA crowds NLL-fitted means predict worse than
     constant velocity (docs/predictor.md)."""
     fit_means = mean_loss == "ade"
@@ -217,7 +218,7 @@ def _window_sums(params, data: dict, env_start, weight):
     steps = jnp.arange(1, PRED_LEN + 1, dtype=jnp.float32)[None, :, None]
     cv = last[:, None] + steps * (last - prev)[:, None]
     w = (g.out_mask & jnp.all(b.target_valid, axis=1)).astype(jnp.float32) * weight
-    err = lambda p: jnp.linalg.norm(p - b.target, axis=-1)  # noqa: E731
+    err = lambda p: jnp.linalg.norm(p - b.target, axis=-1)
     nll, mask = nll_terms(g, b)
     return dict(
         humans=jnp.sum(w),
@@ -292,7 +293,7 @@ def make_evaluator(data: dict, chunk: int = 1000):
 def format_eval(metrics: dict, label: str) -> str:
     y = YARDSTICK
     change = lambda k: (
-        f"{k.upper()} {metrics[k + '_change']:+.1%} "  # noqa: E731
+        f"{k.upper()} {metrics[k + '_change']:+.1%} "
         f"(95% interval {metrics[k + '_change_ci95'][0]:+.1%} to {metrics[k + '_change_ci95'][1]:+.1%})"
     )
     return "\n".join(

@@ -235,8 +235,8 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
         # Inactive slots (the last ones, parked far away) are no part of the scene: cut from every human array.
         # The observation's rows beyond the active count are masked, as nobody inactive is ever visible.
         count = int(first["active"][b].sum())
-        seq = lambda name: np.concatenate([first[name][b][None], outs[name][:steps, b]])  # noqa: E731
-        humans_seq = lambda name: seq(name)[:, :count]  # noqa: E731
+        seq = lambda name, b=b, steps=steps: np.concatenate([first[name][b][None], outs[name][:steps, b]])
+        humans_seq = lambda name, seq=seq, count=count: seq(name)[:, :count]
         robot_pos = seq("robot_pos")
         obs_humans = humans_seq("obs_humans")
         n = obs_humans.shape[1]

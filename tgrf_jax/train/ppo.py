@@ -483,8 +483,8 @@ class Trainer:
             if n_micro == 1:
                 c0, batch, a, r = mb
                 return loss_grad(self.net, params, c0, batch, a, r, hp, p.clip_value, value_stats)
-            split_t = lambda x: split_time_major(x, n_micro)  # noqa: E731
-            split_c = lambda x: split_envs(x, n_micro)  # noqa: E731
+            split_t = lambda x: split_time_major(x, n_micro)
+            split_c = lambda x: split_envs(x, n_micro)
             c0, batch, a, r = mb
             slices = (
                 jax.tree_util.tree_map(split_c, c0),
@@ -517,10 +517,10 @@ class Trainer:
 
         def epoch(carry, k):
             perm = jax.random.permutation(self.shard_key(k), p.shard_envs)
-            take_env = lambda x, axis: jnp.take(x, perm, axis=axis)  # noqa: E731
+            take_env = lambda x, axis: jnp.take(x, perm, axis=axis)
             # time-major data (T, B, ...) -> (n_mb, T, b, ...); carries (B, ...) -> (n_mb, b, ...)
-            split_t = lambda x: split_time_major(take_env(x, 1), n_mb)  # noqa: E731
-            split_c = lambda x: split_envs(take_env(x, 0), n_mb)  # noqa: E731
+            split_t = lambda x: split_time_major(take_env(x, 1), n_mb)
+            split_c = lambda x: split_envs(take_env(x, 0), n_mb)
             mbs = (
                 jax.tree_util.tree_map(split_c, carry0),
                 jax.tree_util.tree_map(split_t, traj),

@@ -53,7 +53,7 @@ def csv_row(metrics: dict, update: int, env_steps: int, wall_s: float, sps: floa
     """A metrics.csv row from one run's reduced chunk metrics (`METRIC_NAMES` -> scalar)."""
     m = {k: float(v) for k, v in metrics.items()}
     episodes = m["episodes"]
-    rate = lambda x: x / episodes if episodes > 0 else float("nan")  # noqa: E731
+    rate = lambda x: x / episodes if episodes > 0 else float("nan")
     row = dict(
         update=update,
         env_steps=env_steps,
@@ -94,7 +94,7 @@ def _fmt_time(s: float) -> str:
 def progress_line(metrics: ChunkMetrics) -> str:
     """The line printed after every chunk (with several runs: steps per run; rates and steps/s of all runs)."""
     row = metrics.total
-    f = lambda x, spec: "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)  # noqa
+    f = lambda x, spec: "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
     runs = len(metrics.runs)
     prefix, per_run = (f"[{runs} runs] ", " per run") if runs > 1 else ("", "")
     return (

@@ -70,12 +70,12 @@ class SpatialBlock(nn.Module):
 
     @nn.compact
     def __call__(self, v, mask, deterministic: bool = True):
-        drop = lambda x: nn.Dropout(self.dropout)(x, deterministic=deterministic)  # noqa: E731
+        drop = lambda x: nn.Dropout(self.dropout)(x, deterministic=deterministic)
         x = nn.Dense(D_MODEL, name="embed")(v)
         x = nn.LayerNorm(epsilon=LN_EPS, name="norm_attn")(x) * mask[..., None]
         qkv = nn.Dense(3 * D_MODEL, name="in_proj")(x)
         head_dim = D_MODEL // NUM_HEADS
-        split = lambda t: t.reshape(t.shape[:-1] + (NUM_HEADS, head_dim))  # noqa: E731
+        split = lambda t: t.reshape(t.shape[:-1] + (NUM_HEADS, head_dim))
         q, k, val = (split(t) for t in jnp.split(qkv, 3, axis=-1))
         logits = jnp.einsum("...qhd,...khd->...hqk", q * head_dim**-0.5, k)
         pair = (mask[..., :, None] * mask[..., None, :])[..., None, :, :]

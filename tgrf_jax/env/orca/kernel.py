@@ -35,8 +35,8 @@ def _solve_scenes(pos, vel, rad, pref, vmax, mask, time_horizon, dt, neighbor_di
     f32 = jnp.float32
     pos, vel, pref = pos.astype(f32), vel.astype(f32), pref.astype(f32)
     a = b * n
-    agent_major = lambda x: x.T.reshape(a)  # noqa: E731  (B, N) -> problem p = agent * B + scene
-    scene_major = lambda x: x.reshape(n, b).T  # noqa: E731
+    agent_major = lambda x: x.T.reshape(a)  # (B, N) -> problem p = agent * B + scene
+    scene_major = lambda x: x.reshape(n, b).T
     radius = agent_major(vmax.astype(f32))
     ox, oy = agent_major(pref[..., 0]), agent_major(pref[..., 1])
     if k == 0 and not obstacles:
@@ -163,7 +163,7 @@ def solve_with_info(
         return jnp.zeros((0, 2), jnp.float32), jnp.zeros((0,), bool)
     k = max(0, min(int(max_neighbors), n - 1))
     mask = jnp.ones((n,), bool) if neighbor_mask is None else jnp.asarray(neighbor_mask, bool)
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
     block = default_block() if block is None else int(block)
     if block < 1:
         raise ValueError(f"block = {block}: must be >= 1 (problems per block)")

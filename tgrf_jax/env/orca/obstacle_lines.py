@@ -242,7 +242,7 @@ def _obstacle_lines(t: _ObstacleTable, px, py, vx, vy, radius, max_speed, inv_th
         shape = scene.shape
         size = scene.size
         cols = jnp.arange(size, dtype=jnp.int32)
-        flat = lambda x: x.reshape(size)  # noqa: E731
+        flat = lambda x: x.reshape(size)
         apx, apy, avx, avy, arad, ainv, amargin = agent
 
         def step(state):
@@ -284,7 +284,7 @@ def _obstacle_lines(t: _ObstacleTable, px, py, vx, vy, radius, max_speed, inv_th
     lines, count, done, _ = lax.while_loop(lambda s: s[3] * 4 > n_prob, dense, state)
 
     # the rest in chunks of the problems with neighbours left
-    to_p = lambda x: x.reshape(x.shape[:-2] + (n_prob,))  # noqa: E731  (..., N, B) -> (..., P)
+    to_p = lambda x: x.reshape(x.shape[:-2] + (n_prob,))  # (..., N, B) -> (..., P)
     pending = jnp.any(~done, axis=0).reshape(n_prob)
     size = max(1, -(-n_prob // 8))
     n_chunks = -(-n_prob // size)

@@ -37,7 +37,7 @@ NETWORK_SIZES = ("paper", "small")
 def dummy_obs(batch_shape, num_humans: int, obs_human_dim: int, lidar_rays: int = 0) -> Obs:
     """All-zeros observation batch (no human visible, no obstacle) with the given leading shape."""
     batch_shape = tuple(batch_shape) if isinstance(batch_shape, (tuple, list)) else (int(batch_shape),)
-    z = lambda *s: jnp.zeros(batch_shape + s, jnp.float32)  # noqa: E731
+    z = lambda *s: jnp.zeros(batch_shape + s, jnp.float32)
     return Obs(
         robot_node=z(7),
         robot_vel=z(2),
