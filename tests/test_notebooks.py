@@ -116,3 +116,8 @@ def test_train_and_evaluate_runs(tmp_path):
     (room,) = [c for c in nb.cells if c.cell_type == "code" and "show_rays=True" in c.source]
     assert any("image/png" in out.get("data", {}) for out in room.outputs)
     assert (tmp_path / "run" / "config.yaml").is_file()
+    # The tune: two exploit steps of 4 members, its report and figures shown inline.
+    assert len((tmp_path / "tune" / "lineage.csv").read_text().splitlines()) == 1 + 2 * 4
+    assert "Best member m" in table
+    (tune,) = [c for c in nb.cells if c.cell_type == "code" and "run_tune(" in c.source]
+    assert sum("image/png" in out.get("data", {}) for out in tune.outputs) == 2

@@ -537,7 +537,8 @@ class PPOConfig:
     """PPO settings. Shape-affecting fields (envs, steps, epochs, minibatches, total steps, switches) are static;
     the numeric ones (lr, coefficients, clip, gamma, lambda, grad norm) become the traced `HParams` pytree.
 
-    Defaults are the fast wall-clock configuration; `configs/paper_*.yaml` restores the reference (docs/reference.md, "Training").
+    Defaults are the fast wall-clock configuration; `configs/paper_*.yaml` restores the reference (docs/reference.md,
+    "Training").
     """
 
     # --- static

@@ -145,7 +145,7 @@ def collect(config: CollectConfig, log=print) -> dict:
     )
     start = time.perf_counter()
     done = 0
-    for c, key in enumerate(jax.random.split(k_run, -(-t // config.chunk))):
+    for key in jax.random.split(k_run, -(-t // config.chunk)):
         length = min(config.chunk, t - done)
         rec, frames = run_chunk(rec, key, length)
         for name, arr in frames.items():
