@@ -56,8 +56,15 @@ def pytest_unconfigure(config):
 # modules by their number of tests, which leaves the few long training modules for last: one worker then runs
 # them alone while the other has nothing left to do. Longest first lets the short modules fill the end.
 LONGEST_FIRST = (
+    "test_crowds.py",
     "test_ppo.py",
     "test_sweep.py",
+    "test_scenario_cli.py",
+    "test_gym.py",
+    "test_deploy.py",
+    "test_tune.py",
+    "test_lidar_policies.py",
+    "test_orca_obstacles.py",
     "test_env.py",
     "test_orca.py",
     "test_notebooks.py",
