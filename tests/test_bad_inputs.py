@@ -6,6 +6,7 @@ The tools run in this process (`main(argv)`); a jax.monitoring listener counts c
 checkpoint trace the state's shapes (`jax.eval_shape`), so only they may trace; none may compile.
 """
 
+import math
 import pathlib
 import re
 import shutil
@@ -35,6 +36,8 @@ MAINS = {
     "tgrf-reproduce": reproduce_main,
     "tgrf-predictor": predictor_main,
 }
+# a polygon of 33 vertices (one beyond config.MAX_POLYGON_VERTICES), rounded to 3 decimals
+_CIRCLE_33 = [(round(math.cos(2 * math.pi * k / 33), 3), round(math.sin(2 * math.pi * k / 33), 3)) for k in range(33)]
 UNWRITABLE = "/sys/tgrf-out"  # the kernel refuses new files under /sys, even to root
 FRESH = "{tmp}/fresh"  # an output path that must still not exist after the error
 
@@ -99,7 +102,51 @@ CASES = {
     ),
     "time limit under dt": (*train("env.time_limit=0.1"), "env.time_limit = 0.1 must be >= env.dt = 0.25"),
     "goal change interval huge": (*train("env.goal_change_interval=1e30"), "env.goal_change_interval = 1e+30 is out"),
-    "too many humans": (*train("env.num_humans=201"), "env.num_humans = 201 is out of range; allowed: >= 0 and <= 200"),
+    "too many humans": (*train("env.num_humans=101"), "env.num_humans = 101 is out of range; allowed: >= 0 and <= 100"),
+    "scenario weights beyond float32": (
+        *train("env.scenario=mix", "env.mix_scenarios=[circle_crossing,random]", "env.scenario_weights=[1e39,1]"),
+        "env.scenario_weights = [1e+39, 1.0] has a weight beyond float32's range (inf); allowed: 2 finite, "
+        "non-negative numbers, one per scenario of the mix (circle_crossing, random), at least one of them positive",
+    ),
+    "scenario weights zero in float32": (
+        *train("env.scenario=mix", "env.mix_scenarios=[circle_crossing,random]", "env.scenario_weights=[1e-46,0]"),
+        "env.scenario_weights = [1e-46, 0.0] are all zero (in float32); allowed: 2 finite, non-negative numbers",
+    ),
+    "eval: scenario weights beyond float32": (
+        *evaluate(
+            TINY,
+            "--set",
+            "env.scenario=mix",
+            "--set",
+            "env.mix_scenarios=[circle_crossing,random]",
+            "--set",
+            "env.scenario_weights=[1e39,1]",
+        ),
+        "env.scenario_weights = [1e+39, 1.0] has a weight beyond float32's range (inf)",
+    ),
+    "scenario weights without a mix": (
+        *train("env.scenario_weights=[1e39,1]"),
+        "env.scenario_weights = ['1e39', 1] is given but env.scenario = 'circle_crossing' is not 'mix', which "
+        "alone reads it; allowed: null (or env.scenario: mix)",
+    ),
+    "mix scenarios without a mix": (
+        *train("env.scenario=corridor", "env.mix_scenarios=[corridor,doorway]"),
+        "env.mix_scenarios = ['corridor', 'doorway'] is given but env.scenario = 'corridor' is not 'mix'",
+    ),
+    "polygon of too many vertices": (
+        *train("env.obstacles=[[" + ",".join(f"[{x},{y}]" for x, y in _CIRCLE_33) + "]]"),
+        "has 33 vertices; allowed: at most 32",
+    ),
+    "too many obstacle slots": (
+        *train("env.scenario=corridor", "env.obstacles=[" + ",".join(["[[0,0],[1,0]]"] * 25) + "]"),
+        "env.obstacles has 25 polygons; allowed: at most 24 (32 obstacle slots in all, of which the scenario draws "
+        "into 8)",
+    ),
+    "too many obstacle edges": (
+        *train("env.scenario=corridor", "env.obstacles=[[" + ",".join(f"[{x},{y}]" for x, y in _CIRCLE_33[::2]) + "]]"),
+        "env.obstacles makes 9 obstacle slots of 17 vertices (each slot holds as many as the longest polygon), 153 "
+        "edge slots; allowed: at most 128",
+    ),
     "negative humans": (*train("env.num_humans=-1"), "env.num_humans = -1 is out of range"),
     "no humans to predict": (
         *train("env.num_humans=0", "env.predictor=const_vel"),

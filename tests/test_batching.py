@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tgrf_jax.env import scenario
+from tgrf_jax.env import scenarios
 from tgrf_jax.env.batching import cond_gathered
 from tgrf_jax.env.sensing import sort_order
 
@@ -74,7 +74,7 @@ def test_goal_changes_only_when_due():
     period = int(params.goal_change_period)
     steps = jnp.asarray([period - 1, period, 2 * period, 2 * period + 1])
     keys = jax.random.split(jax.random.key(1), 4)
-    change = jax.vmap(lambda k, s: scenario.change_goals(k, state.humans, state.robot, params, s, 4))
+    change = jax.vmap(lambda k, s: scenarios.change_goals(k, state.humans, state.robot, params, s, 4))
     goals = np.asarray(change(keys, steps).goal)
     old = np.asarray(state.humans.goal)
     assert np.array_equal(goals[0], old) and np.array_equal(goals[3], old)

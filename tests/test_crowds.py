@@ -7,7 +7,7 @@ import pytest
 from helpers import CompileCounter, hand_state, make_env, to_goal
 
 from tgrf_jax.config import ConfigError, EnvConfig
-from tgrf_jax.env import scenario
+from tgrf_jax.env import scenarios
 
 
 def _padded(state, capacity):
@@ -15,7 +15,7 @@ def _padded(state, capacity):
     h = state.humans
     extra = capacity - h.pos.shape[0]
     pad = lambda x, v=0.0: jnp.concatenate([x, jnp.full((extra,) + x.shape[1:], v, x.dtype)])  # noqa: E731
-    humans = scenario.park(
+    humans = scenarios.park(
         h.replace(
             pos=pad(h.pos),
             vel=pad(h.vel),
@@ -175,7 +175,7 @@ def test_every_scenario_resets_and_steps(name):
     params = env.default_params
     obs, state = _reset_many(env, n=16)
     h, r = state.humans, state.robot
-    assert np.all(np.asarray(state.scenario) == SCENARIOS.index(name))
+    assert np.all(np.asarray(state.scenario) == 0)  # an index into env.config.drawn_scenarios: (name,)
     a, rad = float(params.arena_size), float(params.circle_radius)
     goal = np.asarray(h.goal)
     if name in ("parallel_traffic", "frontal_approach", "robot_overtaking"):
@@ -204,7 +204,7 @@ def test_every_scenario_resets_and_steps(name):
     rew, goals, index = jax.jit(lambda c: jax.lax.scan(body, c, jax.random.split(jax.random.key(1), 40)))((obs, state))[
         1
     ]
-    assert np.all(np.isfinite(np.asarray(rew))) and np.all(np.asarray(index) == SCENARIOS.index(name))
+    assert np.all(np.isfinite(np.asarray(rew))) and np.all(np.asarray(index) == 0)
     assert not np.array_equal(goals[-1], goal)  # goal changes and respawns happened
     if name == "perpendicular_traffic":
         assert np.allclose(np.asarray(goals)[..., 0], rad)  # the stream keeps its direction
@@ -226,6 +226,17 @@ def test_mix_draws_scenarios_by_weight_in_one_program():
     assert set(drawn.tolist()) == {2, 5} and 0.65 < np.mean(drawn == 5) < 0.85
 
 
+def test_a_mix_in_any_order_gives_each_scenario_its_speed():
+    """The speed factor is looked up by the episode's index into the mix (the old code used the index into
+    config.SCENARIOS there, so this mix gave robot_overtaking full speed and circle_crossing half)."""
+    env = make_env(num_humans=4, scenario="mix", mix_scenarios=["robot_overtaking", "circle_crossing"])
+    state = _reset_many(env, n=64)[1]
+    overtaking = np.asarray(state.scenario) == 0
+    v_pref = np.asarray(state.humans.v_pref)
+    assert 0 < overtaking.sum() < 64
+    assert np.all(v_pref[overtaking] <= 0.75) and np.any(v_pref[~overtaking] > 0.75)
+
+
 @pytest.mark.parametrize("name", ["circle_crossing", "parallel_traffic", "random"])
 def test_mix_with_one_weight_plays_that_scenario(name):
     """A one-hot mix plays the scenario's own episodes (same keys, same draws; up to FMA contraction, which
@@ -234,11 +245,14 @@ def test_mix_with_one_weight_plays_that_scenario(name):
     weights[CROWD_SCENARIOS.index(name)] = 1.0
     plain = make_env(num_humans=5, scenario=name)
     mix = make_env(num_humans=5, scenario="mix", scenario_weights=weights)
-    for env_a, env_b in ((plain, mix),):
-        a = _reset_many(env_a, n=8)[1]
-        b = _reset_many(env_b, n=8)[1]
-        for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
-            np.testing.assert_array_equal(x, y)
+    a = _reset_many(plain, n=8)[1]
+    b = _reset_many(mix, n=8)[1]
+    # the same scenario, each as an index into its env's scenarios
+    assert {plain.config.drawn_scenarios[i] for i in np.asarray(a.scenario)} == {name}
+    assert {mix.config.drawn_scenarios[i] for i in np.asarray(b.scenario)} == {name}
+    a, b = a.replace(scenario=b.scenario), b
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(x, y)
     from helpers import rollout
 
     ra = rollout(plain, jax.random.key(4), plain.default_params, 60, to_goal)
@@ -257,7 +271,7 @@ def test_mix_with_one_weight_plays_that_scenario(name):
         ),
         ({"scenario": "mix", "scenario_weights": [1, 1]}, "env.scenario_weights has 2 value"),
         ({"scenario": "mix", "scenario_weights": [1, 1, 1, -1, 1, 1, 1, 1]}, "has a negative or non-finite weight"),
-        ({"scenario": "mix", "scenario_weights": [0] * 8}, "are all zero; allowed: 8 non-negative numbers"),
+        ({"scenario": "mix", "scenario_weights": [0] * 8}, r"are all zero \(in float32\); allowed: 8 finite, non-neg"),
         (
             {"scenario": "mix", "scenario_weights": "uniform"},
             "env.scenario_weights = 'uniform' must be a list of 8 numbers",
@@ -266,6 +280,28 @@ def test_mix_with_one_weight_plays_that_scenario(name):
             {"scenario": "mix", "scenario_weights": [1, "x", 1, 1, 1, 1, 1, 1]},
             r"env.scenario_weights\[1\] = 'x' must be a number",
         ),
+        # weights the env would draw with as float32 inf or 0 (the config used to pass them on)
+        (
+            {"scenario": "mix", "mix_scenarios": ["circle_crossing", "random"], "scenario_weights": [1e39, 1]},
+            r"env.scenario_weights = \[1e\+39, 1.0\] has a weight beyond float32's range \(inf\); allowed: 2 "
+            r"finite, non-negative numbers, one per scenario of the mix \(circle_crossing, random\), at least one "
+            r"of them positive \(>= 1.18e-38\) and their sum finite \(<= 3.4e\+38, float32\)",
+        ),
+        (
+            {"scenario": "mix", "mix_scenarios": ["circle_crossing", "random"], "scenario_weights": [1e-46, 0]},
+            r"env.scenario_weights = \[1e-46, 0.0\] are all zero \(in float32\); allowed: 2 finite",
+        ),
+        (
+            {"scenario": "mix", "mix_scenarios": ["circle_crossing", "random"], "scenario_weights": [3e38, 3e38]},
+            r"sum beyond float32's range; allowed: 2 finite",
+        ),
+        # mix settings with another scenario: refused, not ignored
+        (
+            {"scenario_weights": [1]},
+            r"env.scenario_weights = \[1\] is given but env.scenario = 'circle_crossing' is not 'mix', which alone "
+            r"reads it; allowed: null \(or env.scenario: mix\)",
+        ),
+        ({"scenario": "random", "mix_scenarios": ["random"]}, r"env.mix_scenarios = \['random'\] is given but"),
     ],
 )
 def test_bad_scenarios(fields, message):
@@ -277,3 +313,10 @@ def test_bad_weights_in_params_are_caught_before_compiling():
     env = make_env(scenario="mix")
     with pytest.raises(ConfigError, match="are all zero"):
         env.default_params.replace(scenario_weights=jnp.zeros(len(CROWD_SCENARIOS))).validate()
+    ones = jnp.ones(len(CROWD_SCENARIOS))
+    with pytest.raises(ConfigError, match=r"has a negative or non-finite weight; allowed: 8 finite, non-negative"):
+        env.default_params.replace(scenario_weights=ones.at[0].set(jnp.inf)).validate()
+    with pytest.raises(ConfigError, match=r"sum beyond float32's range"):
+        env.default_params.replace(scenario_weights=ones * 3e38).validate()
+    with pytest.raises(ConfigError, match=r"are all zero \(in float32\)"):  # below float32's normal numbers
+        env.default_params.replace(scenario_weights=ones * 1e-39).validate()

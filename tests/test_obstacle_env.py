@@ -113,10 +113,13 @@ def test_mix_with_obstacle_scenarios_draws_both_kinds():
     env = CrowdNavEnv(dict(scenario="mix", mix_scenarios=["circle_crossing", "doorway"], num_humans=4, **SF))
     obs, state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(3), 64))
     with_walls = np.asarray(state.obstacles.num_vertices).sum(-1) > 0
-    from tgrf_jax.config import SCENARIOS
-
-    door = np.asarray(state.scenario) == SCENARIOS.index("doorway")
+    door = np.asarray(state.scenario) == env.config.drawn_scenarios.index("doorway")  # 1: the mix's second
     assert 0 < door.sum() < 64 and np.array_equal(with_walls, door)
+
+
+def _ngon(n):
+    """A regular n-gon of radius 1 about (5, 5), counter-clockwise."""
+    return [[5 + np.cos(a), 5 + np.sin(a)] for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
 
 
 @pytest.mark.parametrize(
@@ -134,8 +137,26 @@ def test_mix_with_obstacle_scenarios_draws_both_kinds():
             dict(scenario="mix", mix_scenarios=["corridor", "doorway"], scenario_weights=[1, 1, 1]),
             r"env.scenario_weights has 3 value\(s\); allowed: 2",
         ),
+        # capacities (config.MAX_POLYGON_VERTICES, MAX_OBSTACLE_SLOTS, MAX_OBSTACLE_EDGES), checked before compiling
+        (dict(obstacles=[_ngon(33)]), r"env.obstacles\[0\] = .* has 33 vertices; allowed: at most 32"),
+        (dict(obstacles=[[[0, 0], [1, 0]]] * 33), r"env.obstacles has 33 polygons; allowed: at most 32 \(32 obstacle"),
+        (
+            dict(scenario="doorway", obstacles=[[[0, 0], [1, 0]]] * 25),
+            r"env.obstacles has 25 polygons; allowed: at most 24 \(32 obstacle slots in all, of which the scenario "
+            r"draws into 8\)",
+        ),
+        (
+            dict(scenario="corridor", obstacles=[_ngon(16)]),
+            r"env.obstacles makes 9 obstacle slots of 16 vertices \(each slot holds as many as the longest polygon\), "
+            r"144 edge slots; allowed: at most 128",
+        ),
     ],
 )
 def test_bad_obstacle_settings_are_config_errors(env, error):
     with pytest.raises(ConfigError, match=error):
         EnvConfig(**env)
+
+
+def test_the_largest_obstacle_capacities_are_allowed():
+    assert EnvConfig(obstacles=[_ngon(32)] * 4).obstacle_slots * 32 == 128
+    assert EnvConfig(scenario="random_obstacles", obstacles=[[[0, 0], [1, 0]]] * 24).obstacle_slots == 32

@@ -125,3 +125,28 @@ def test_unknown_scheme_and_field_are_rejected():
         R.reward_params("scan")
     with pytest.raises(ValueError, match="h_dsic"):
         R.reward_params("tgrf", h_dsic=1.0)
+
+
+def test_the_reward_fields_are_declared_once():
+    """RewardParams' fields carry their scheme values, ranges and docs; the scheme table and the config section's
+    overrides follow from them (the fields in the same order, the same ranges)."""
+    import dataclasses
+
+    from tgrf_jax.config import RewardConfig, griddable_fields
+
+    declared = dataclasses.fields(R.RewardParams)
+    names = [f.name for f in declared]
+    assert set(R.SCHEME_DEFAULTS) == set(R.SCHEMES)
+    assert all(list(values) == names for values in R.SCHEME_DEFAULTS.values())
+    overrides = [f for f in dataclasses.fields(RewardConfig) if f.name != "scheme"]
+    assert [f.name for f in overrides] == names
+    for param, override in zip(declared, overrides):
+        assert override.default is None and override.metadata["traced"]
+        for key in ("low", "high", "low_inclusive", "high_inclusive", "doc"):
+            assert override.metadata[key] == param.metadata[key], (param.name, key)
+    assert [n for n in griddable_fields() if n.startswith("reward.")] == ["reward.scheme"] + [
+        f"reward.{n}" for n in names
+    ]
+    # the schemes' values, as the paper and the reference code set them (docs/reference.md, "Rewards")
+    assert R.SCHEME_DEFAULTS["tgrf"]["h_disc"] == 2.5 and R.SCHEME_DEFAULTS["crowdnav_pp"]["r_col"] == -20.0
+    assert R.SCHEME_DEFAULTS["dsrnn"]["pred_penalty"] == 0.0 and R.SCHEME_DEFAULTS["tgrf_circle"]["d_disc"] == 0.5

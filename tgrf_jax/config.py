@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 import re
 from collections.abc import Mapping
 from typing import Any
@@ -20,9 +19,11 @@ import numpy as np
 import yaml
 
 from tgrf_jax import reward as reward_lib
+from tgrf_jax import scenario_registry as registry
 from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
     ConfigError,
     _coerce,
+    _show,
     _unknown_key_error,
     apply_overrides,
     check_fields,
@@ -35,6 +36,7 @@ from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exp
     traced,
     traced_names,
 )
+from tgrf_jax.polygons import check_polygons
 
 __all__ = [
     "ConfigError",
@@ -55,48 +57,23 @@ __all__ = [
 # Reward and environment configuration
 # --------------------------------------------------------------------------------------------------
 
-_REWARD_FIELDS = tuple(reward_lib.SCHEME_DEFAULTS["tgrf"])
+_REWARD_FIELDS = tuple(f.name for f in dataclasses.fields(reward_lib.RewardParams))
 
 
-@dataclasses.dataclass(frozen=True)
-class RewardConfig:
-    """A reward scheme plus per-field overrides; see `tgrf_jax.reward` for the formulas.
-
-    Fields left at None take the scheme's default, so `{scheme: crowdnav_pp}` alone is the full CrowdNav++
-    reward, and `{scheme: tgrf, h_disc: 1.0}` changes only the TGRF peak.
-    """
-
-    scheme: str = spec("tgrf", choices=reward_lib.SCHEMES)
-    r_goal: float | None = traced(None, low=0.0, doc="reward for reaching the goal")
-    r_col: float | None = traced(None, high=0.0, doc="reward (penalty) for a collision")
-    d_disc: float | None = traced(None, low=0.0, doc="danger-zone radius, edge-to-edge metres")
-    h_disc: float | None = traced(None, low=0.0, doc="TGRF peak of the danger penalty (absolute)")
-    sigma_disc: float | None = traced(None, low=0.0, low_inclusive=False, doc="TGRF width of the danger penalty")
-    disc_slope: float | None = traced(None, low=0.0, doc="linear danger penalty slope (CrowdNav++: 2.5)")
-    pot_factor: float | None = traced(None, low=0.0, doc="progress reward per metre towards the goal")
-    sigma_pot: float | None = traced(None, low=0.0, low_inclusive=False, doc="TGRF width of r_pot")
-    pred_penalty: float | None = traced(None, high=0.0, doc="r_col used by r_pred (0 disables r_pred)")
-    pred_c: float | None = traced(None, low=0.0, doc="r_pred exponent offset: penalty / 2^(k + c)")
-    pred_radius: float | None = traced(None, low=0.0, doc="centre distance counted as inside a prediction")
-    spin_coef: float | None = traced(None, low=0.0, doc="unicycle: penalty per rad^2 of heading change")
-    back_coef: float | None = traced(None, low=0.0, doc="unicycle: penalty per m/s of backwards speed")
-
+class _RewardConfigMethods:
     def __post_init__(self):
         if self.scheme not in reward_lib.SCHEMES:
             raise ConfigError(
                 f"reward.scheme = {self.scheme!r} is not allowed; allowed: {', '.join(map(repr, reward_lib.SCHEMES))}"
             )
-        for f in dataclasses.fields(self):
-            if f.name == "scheme":
-                continue
-            value = getattr(self, f.name)
-            if value is None:
-                continue
-            value = _coerce(value, 0.0, f"reward.{f.name}")
-            object.__setattr__(self, f.name, value)
+        for name in _REWARD_FIELDS:
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, _coerce(value, 0.0, f"reward.{name}"))
         check_fields(_ResolvedReward(**self.resolved()), "reward")
 
     def resolved(self) -> dict[str, float]:
+        """Every reward field's value: the override where one is given, else the scheme's."""
         values = dict(reward_lib.SCHEME_DEFAULTS[self.scheme])
         for name in _REWARD_FIELDS:
             if getattr(self, name) is not None:
@@ -105,6 +82,31 @@ class RewardConfig:
 
     def params(self) -> reward_lib.RewardParams:
         return reward_lib.reward_params(self.scheme, **self.resolved())
+
+
+def _reward_override(field: dataclasses.Field):
+    """RewardConfig's override of a `reward.RewardParams` field: None (the scheme's value) or a number in the range
+    the field declares, with its doc."""
+    allowed = {k: field.metadata[k] for k in ("low", "high", "low_inclusive", "high_inclusive", "doc")}
+    return traced(None, **allowed)
+
+
+# The reward section: a scheme plus one optional override per field of `reward.RewardParams`, where each field is
+# declared once (its value in each scheme, its range and doc); the fields here follow from those declarations.
+RewardConfig = dataclasses.make_dataclass(
+    "RewardConfig",
+    [("scheme", "str", spec("tgrf", choices=reward_lib.SCHEMES))]
+    + [(f.name, "float | None", _reward_override(f)) for f in dataclasses.fields(reward_lib.RewardParams)],
+    bases=(_RewardConfigMethods,),
+    frozen=True,
+    namespace={
+        "__module__": __name__,
+        "__doc__": """A reward scheme plus per-field overrides; see `tgrf_jax.reward` for the formulas and the fields.
+
+    Fields left at None take the scheme's default, so `{scheme: crowdnav_pp}` alone is the full CrowdNav++
+    reward, and `{scheme: tgrf, h_disc: 1.0}` changes only the TGRF peak.""",
+    },
+)
 
 
 def _resolved_reward_class():
@@ -118,28 +120,28 @@ def _resolved_reward_class():
 
 _ResolvedReward = _resolved_reward_class()
 
-# The concrete scenarios (tgrf_jax.env.scenario, docs/scenarios.md): open spaces with a crowd, then layouts with
-# static obstacles. `env.scenario: mix` draws among `env.mix_scenarios` (default: the crowd scenarios).
-CROWD_SCENARIOS = (
-    "circle_crossing",
-    "square_crossing",
-    "parallel_traffic",
-    "perpendicular_traffic",
-    "frontal_approach",
-    "robot_overtaking",
-    "robot_crowding",
-    "random",
-)
-OBSTACLE_SCENARIOS = ("corridor", "doorway", "intersection", "random_obstacles")
-SCENARIOS = CROWD_SCENARIOS + OBSTACLE_SCENARIOS
+# The scenarios are registered in `tgrf_jax.scenario_registry` (the built-ins by `tgrf_jax.env.scenarios`), the only
+# list of their names: `env.scenario`'s and `env.mix_scenarios`' choices and the default mix are read from it when a
+# config is checked, so a scenario registered later is a valid choice too. CROWD_SCENARIOS, OBSTACLE_SCENARIOS and
+# SCENARIOS (all of them), each in registration order, are module attributes read from it on access (`__getattr__`
+# at the end of this module).
+_SCENARIO_LISTS = {"CROWD_SCENARIOS": "crowd", "OBSTACLE_SCENARIOS": "obstacle", "SCENARIOS": None}
 # Obstacle slots the scenarios draw into (random_obstacles: up to 8 boxes) and their vertex capacity.
 SCENARIO_OBSTACLE_SLOTS = 8
 SCENARIO_OBSTACLE_VERTICES = 4
 MAX_LIDAR_RAYS = 1440  # a quarter of a degree: finer than any 2-D laser scanner a mobile robot carries
 
-# Allowed human counts: the reference scenario uses 20; spawning on a 6*sqrt(2) m circle cannot seat many more
-# without overlaps.
-MAX_HUMANS = 200
+# Capacities: they are shapes, and they set how long an env compiles (docs/scenarios.md, "Capacities", has the
+# measurements). Human slots: the reference scenario uses 20; jit(env.step) compiles in about 25 s of CPU with 100
+# human slots and several minutes with 200, and a 6*sqrt(2) m circle cannot seat many more without overlaps anyway.
+MAX_HUMANS = 100
+# Obstacles: an env's obstacle slots (the scenario's SCENARIO_OBSTACLE_SLOTS, when it draws obstacles, plus one per
+# polygon of env.obstacles) each hold as many vertices as the longest polygon, and the obstacle code is unrolled
+# over those edge slots: compilation grows by about 0.6 s of CPU per edge slot (128: about 1.5 minutes; a
+# 500-vertex polygon: over 5 minutes).
+MAX_OBSTACLE_SLOTS = 32
+MAX_POLYGON_VERTICES = 32
+MAX_OBSTACLE_EDGES = 128  # obstacle slots x vertices per slot
 # Time: steps of at least 10 ms and episodes of at most 1000 s keep an episode within 100,000 steps (int32 step
 # counters, evaluation loops and recordings that end).
 MIN_DT = 0.01
@@ -149,6 +151,7 @@ MAX_BODY_RADIUS = 2.0
 MAX_SENSOR_RANGE = 100.0  # edge-to-edge metres: far beyond any arena the scenarios draw
 MAX_NAME_LENGTH = 200  # with room for a sweep's run suffix within a file name's 255 bytes
 _NAME = re.compile(r"[A-Za-z0-9_.=+-]+")
+_F32 = np.finfo(np.float32)
 # Episodes of one evaluation: their per-episode statistics stay on the host (about 40 bytes each).
 MAX_EPISODES = 10_000_000
 
@@ -166,19 +169,21 @@ class EnvConfig:
     num_humans: int = spec(20, low=0, high=MAX_HUMANS, doc="human slots (the capacity; see active_humans_*)")
     scenario: str = spec(
         "circle_crossing",
-        choices=SCENARIOS + ("mix",),
+        choices=registry.Names("mix"),  # the registered scenarios, read when checked
         doc="how starts, goals, goal changes, respawns and obstacles are drawn (docs/scenarios.md); "
         "mix: a scenario of env.mix_scenarios drawn per episode by env.scenario_weights",
     )
     mix_scenarios: tuple | None = spec(
         None,
-        doc="mix: the scenarios it draws from, in the order of env.scenario_weights (None: the crowd "
-        f"scenarios, {', '.join(CROWD_SCENARIOS)})",
+        doc="mix: the scenarios it draws from, in the order of env.scenario_weights (None: every crowd scenario, "
+        "in the order of config.CROWD_SCENARIOS)",
     )
     obstacles: tuple | None = spec(
         None,
         doc="a fixed layout in every episode, beside the scenario's own obstacles: a list of polygons, each "
-        "a list of [x, y] vertices counter-clockwise (2 vertices: a wall segment)",
+        f"a list of [x, y] vertices counter-clockwise (2 vertices: a wall segment), at most {MAX_POLYGON_VERTICES} "
+        f"vertices each, {MAX_OBSTACLE_SLOTS} obstacle slots in all (the scenario's included) and "
+        f"{MAX_OBSTACLE_EDGES} edge slots (slots x the longest polygon's vertices)",
     )
     lidar_rays: int = spec(
         0,
@@ -216,7 +221,9 @@ class EnvConfig:
         None, low=0, high=MAX_HUMANS, doc="most humans present in an episode (None: env.num_humans)"
     )
     scenario_weights: tuple | None = traced(
-        None, doc="mix: relative frequency of each scenario of env.mix_scenarios, in its order (None: equal)"
+        None,
+        doc="mix: relative frequency of each scenario of env.mix_scenarios, in its order (None: equal); finite, "
+        "non-negative, at least one positive and a finite sum, in float32",
     )
     dt: float = traced(0.25, low=MIN_DT, high=1.0, doc="seconds per step")
     time_limit: float = traced(
@@ -262,10 +269,34 @@ class EnvConfig:
             if value is not None:
                 value = _coerce(value, 0, f"env.{name}")  # a count: whole numbers only
                 object.__setattr__(self, name, value)
+        check_fields(self, "env", names=("scenario",))  # first: the checks below read the scenario
+        if self.scenario != "mix":
+            for name in ("mix_scenarios", "scenario_weights"):
+                if getattr(self, name) is not None:
+                    raise ConfigError(
+                        f"env.{name} = {_show(getattr(self, name))} is given but env.scenario = "
+                        f"{self.scenario!r} is not 'mix', which alone reads it; allowed: null (or env.scenario: mix)"
+                    )
         if self.mix_scenarios is not None:
             object.__setattr__(self, "mix_scenarios", _scenario_list(self.mix_scenarios))
         if self.obstacles is not None:
-            object.__setattr__(self, "obstacles", check_polygons(self.obstacles, "env.obstacles"))
+            room = MAX_OBSTACLE_SLOTS - self.scenario_obstacle_slots
+            polygons = check_polygons(
+                self.obstacles,
+                "env.obstacles",
+                max_polygons=room,
+                max_vertices=MAX_POLYGON_VERTICES,
+                why=f"{MAX_OBSTACLE_SLOTS} obstacle slots in all, of which the scenario draws into "
+                f"{self.scenario_obstacle_slots}",
+            )
+            object.__setattr__(self, "obstacles", polygons)
+            edges = self.obstacle_slots * self.obstacle_vertices
+            if edges > MAX_OBSTACLE_EDGES:
+                raise ConfigError(
+                    f"env.obstacles makes {self.obstacle_slots} obstacle slots of {self.obstacle_vertices} vertices "
+                    f"(each slot holds as many as the longest polygon), {edges} edge slots; allowed: at most "
+                    f"{MAX_OBSTACLE_EDGES} (compilation grows with them): fewer or shorter polygons"
+                )
         if self.scenario_weights is not None:
             weights, names = self.scenario_weights, self.drawn_scenarios
             if isinstance(weights, (str, bytes)) or not hasattr(weights, "__iter__"):
@@ -279,7 +310,8 @@ class EnvConfig:
                 tuple(_coerce(w, 0.0, f"env.scenario_weights[{i}]") for i, w in enumerate(weights)),
             )
         check_fields(self, "env")
-        check_env_relations({n: self.resolved(n) for n in traced_names(EnvConfig)}, self.drawn_scenarios)
+        check_scenario_weights(self.resolved("scenario_weights"), self.drawn_scenarios)
+        check_env_relations({n: self.resolved(n) for n in traced_names(EnvConfig)})
         hi = self.resolved("active_humans_max")
         if hi > self.num_humans:
             raise ConfigError(
@@ -308,16 +340,23 @@ class EnvConfig:
 
     @property
     def drawn_scenarios(self) -> tuple[str, ...]:
-        """The scenarios this env plays: env.scenario, or the mix's (the order of env.scenario_weights)."""
+        """The scenarios this env plays: env.scenario, or the mix's (the order of env.scenario_weights). An episode's
+        scenario is an index into this tuple (`EnvState.scenario`)."""
         if self.scenario != "mix":
             return (self.scenario,)
-        return CROWD_SCENARIOS if self.mix_scenarios is None else self.mix_scenarios
+        return registry.names("crowd") if self.mix_scenarios is None else self.mix_scenarios
+
+    @property
+    def scenario_obstacle_slots(self) -> int:
+        """The obstacle slots the scenarios draw into: SCENARIO_OBSTACLE_SLOTS when one of them is an obstacle
+        scenario, else none."""
+        drawn = any(registry.kind_of(name) == "obstacle" for name in self.drawn_scenarios)
+        return SCENARIO_OBSTACLE_SLOTS if drawn else 0
 
     @property
     def obstacle_slots(self) -> int:
         """Static obstacle capacity: the scenarios' slots (when one of them draws obstacles) plus the fixed layout."""
-        drawn = SCENARIO_OBSTACLE_SLOTS if set(self.drawn_scenarios) & set(OBSTACLE_SCENARIOS) else 0
-        return drawn + len(self.obstacles or ())
+        return self.scenario_obstacle_slots + len(self.obstacles or ())
 
     @property
     def obstacle_vertices(self) -> int:
@@ -349,119 +388,23 @@ class EnvConfig:
 
 
 def _scenario_list(names) -> tuple[str, ...]:
-    """env.mix_scenarios as a tuple of distinct known scenario names."""
-    allowed = f"allowed: a non-empty list of distinct names among {', '.join(SCENARIOS)}"
+    """env.mix_scenarios as a tuple of distinct registered scenario names."""
+    known = registry.names()
+    allowed = f"allowed: a non-empty list of distinct names among {', '.join(known)}"
     if isinstance(names, (str, bytes)) or not hasattr(names, "__iter__"):
-        raise ConfigError(f"env.mix_scenarios = {names!r} must be a list of scenario names; {allowed}")
+        raise ConfigError(f"env.mix_scenarios = {_show(names)} must be a list of scenario names; {allowed}")
     names = tuple(names)
     for i, name in enumerate(names):
-        if name not in SCENARIOS:
+        if not isinstance(name, str) or name not in known:
             raise ConfigError(f"env.mix_scenarios[{i}] = {name!r} is not a scenario; {allowed}")
     if not names or len(set(names)) != len(names):
-        raise ConfigError(f"env.mix_scenarios = {list(names)!r} is empty or names a scenario twice; {allowed}")
+        raise ConfigError(f"env.mix_scenarios = {_show(list(names))} is empty or names a scenario twice; {allowed}")
     return names
 
 
-def _describe(polygon) -> str:
-    text = repr(polygon)
-    return text if len(text) <= 80 else text[:77] + "..."
-
-
-def _segments_intersect_np(a, b, c, d) -> np.ndarray:
-    """Whether closed segments a-b and c-d intersect (touching included); arrays of shape (..., 2), float64."""
-
-    def orient(p, q, r):
-        return np.sign(
-            (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
-        )
-
-    def on_segment(p, q, r):  # r collinear with p-q: within its bounding box
-        return (
-            (np.minimum(p[..., 0], q[..., 0]) <= r[..., 0])
-            & (r[..., 0] <= np.maximum(p[..., 0], q[..., 0]))
-            & (np.minimum(p[..., 1], q[..., 1]) <= r[..., 1])
-            & (r[..., 1] <= np.maximum(p[..., 1], q[..., 1]))
-        )
-
-    o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
-    proper = (o1 * o2 < 0) & (o3 * o4 < 0)
-    touch = (
-        ((o1 == 0) & on_segment(a, b, c))
-        | ((o2 == 0) & on_segment(a, b, d))
-        | ((o3 == 0) & on_segment(c, d, a))
-        | ((o4 == 0) & on_segment(c, d, b))
-    )
-    return proper | touch
-
-
-def check_polygons(polygons, field: str) -> tuple:
-    """Validate obstacle polygons on the host; returns them as tuples of (x, y) float pairs (hashable, as configs are).
-
-    Raises ConfigError naming `field`, the polygon's index and what is allowed for: anything but a list of
-    polygons, a polygon with fewer than 2 vertices, vertices that are not pairs of finite numbers, a clockwise
-    polygon, zero-length edges (repeated consecutive vertices, the last and first included), a polygon of 3+
-    vertices that encloses no area, and a self-intersecting polygon.
-    """
-    if polygons is None or isinstance(polygons, (str, bytes, dict)) or not hasattr(polygons, "__len__"):
-        raise ConfigError(f"{field} = {_describe(polygons)} must be a list of polygons, each a list of [x, y] vertices")
-    checked = []
-    for i, polygon in enumerate(polygons):
-        where = f"{field}[{i}] = {_describe(polygon)}"
-        # Checked coordinate by coordinate: numpy would quietly parse strings such as "1.5" as numbers.
-        try:
-            rows = [list(vertex) for vertex in polygon]
-        except TypeError:
-            rows = None
-        if (
-            rows is None
-            or isinstance(polygon, (str, bytes, dict))
-            or not all(
-                len(r) == 2 and all(isinstance(c, numbers.Real) and not isinstance(c, bool) for c in r) for r in rows
-            )
-        ):
-            raise ConfigError(f"{where} must be a list of [x, y] vertices, each a pair of numbers")
-        v = np.array(rows, dtype=np.float64).reshape(-1, 2)
-        n = v.shape[0]
-        if n < 2:
-            raise ConfigError(f"{where} has {n} vertices; allowed: 2 (a wall segment) or more (a polygon)")
-        if not np.all(np.isfinite(v)):
-            raise ConfigError(f"{where} has non-finite coordinates; every coordinate must be a finite number")
-        nxt = np.roll(v, -1, axis=0)
-        edge_len = np.hypot(*(nxt - v).T)
-        if np.any(edge_len[: n if n >= 3 else 1] == 0.0):
-            raise ConfigError(
-                f"{where} has a zero-length edge (repeated consecutive vertices, the last and the "
-                "first included); give each vertex once"
-            )
-        if n >= 3:
-            # Every pair of edges must meet only where they share a vertex. Adjacent edges share one; they
-            # intersect elsewhere only by folding back over each other, caught by the collinear test below.
-            j = np.arange(n)
-            hit = _segments_intersect_np(v[:, None], nxt[:, None], v[None, :], nxt[None, :])
-            adjacent = (
-                (j[:, None] == j[None, :]) | ((j[:, None] + 1) % n == j[None, :]) | ((j[None, :] + 1) % n == j[:, None])
-            )
-            e, f = nxt - v, np.roll(nxt - v, -1, axis=0)  # edge k and edge k + 1, which share vertex k + 1
-            folds = (e[:, 0] * f[:, 1] - e[:, 1] * f[:, 0] == 0) & (e[:, 0] * f[:, 0] + e[:, 1] * f[:, 1] < 0)
-            if np.any(hit & ~adjacent) or np.any(folds):
-                raise ConfigError(
-                    f"{where} intersects itself; allowed: simple polygons (edges meet only at shared vertices)"
-                )
-            area = 0.5 * np.sum(v[:, 0] * nxt[:, 1] - nxt[:, 0] * v[:, 1])
-            if area < 0:
-                raise ConfigError(
-                    f"{where} is clockwise (signed area {area:g}); give the vertices "
-                    "counter-clockwise (interior on the left of each edge, as RVO2)"
-                )
-            if area == 0:
-                raise ConfigError(f"{where} encloses no area (collinear vertices); use 2 vertices for a wall")
-        checked.append(tuple((float(x), float(y)) for x, y in v))
-    return tuple(checked)
-
-
-def check_env_relations(values: Mapping[str, Any], drawn_scenarios=None) -> None:
+def check_env_relations(values: Mapping[str, Any]) -> None:
     """The constraints between numeric env fields, on a config's values or on concrete `EnvParams` leaves (arrays:
-    every element). `drawn_scenarios`: the env's scenarios (the length of scenario_weights; None: not checked)."""
+    every element); the scenario weights have their own `check_scenario_weights`."""
     for lo, hi in (
         ("human_radius_min", "human_radius_max"),
         ("human_v_pref_min", "human_v_pref_max"),
@@ -486,31 +429,39 @@ def check_env_relations(values: Mapping[str, Any], drawn_scenarios=None) -> None
     hit = first_where(np.asarray(values["time_limit"]) < np.asarray(values["dt"]), values["time_limit"], values["dt"])
     if hit:
         raise ConfigError(f"env.time_limit = {hit[0]!s} must be >= env.dt = {hit[1]!s}")
-    check_scenario_weights(values["scenario_weights"], drawn_scenarios)
 
 
 def check_scenario_weights(weights, drawn_scenarios=None) -> None:
-    """One non-negative, finite weight per scenario of the mix (the last axis; leading axes: a batch), not all
-    zero. `drawn_scenarios` None: any length."""
+    """One weight per scenario of the mix (the last axis; leading axes: a batch), as the env draws with them in
+    float32: each finite and non-negative, at least one positive and their sum finite. Positive means a normal
+    float32 (XLA flushes smaller numbers to zero) and finite means within float32's range (a config's 1e39 is
+    float32's inf). `drawn_scenarios` None: any length."""
     w = np.asarray(weights, np.float64)
     names = drawn_scenarios or ()
     count = len(names) if drawn_scenarios is not None else (w.shape[-1] if w.ndim else 1)
-    allowed = f"allowed: {count} non-negative numbers, not all zero, one per scenario of the mix" + (
-        f" ({', '.join(names)})" if names else ""
+    allowed = (
+        f"allowed: {count} finite, non-negative numbers, one per scenario of the mix"
+        + (f" ({', '.join(names)})" if names else "")
+        + f", at least one of them positive (>= {_F32.tiny:.3g}) and their sum finite (<= {_F32.max:.3g}, float32)"
     )
     if w.ndim == 0 or w.shape[-1] != count:
         raise ConfigError(f"env.scenario_weights has {1 if w.ndim == 0 else w.shape[-1]} value(s); {allowed}")
-    if not np.all(np.isfinite(w)) or np.any(w < 0):
-        raise ConfigError(
-            f"env.scenario_weights = {np.round(w, 6).tolist()} has a negative or non-finite weight; {allowed}"
-        )
-    if np.any(w.sum(-1) <= 0):
-        raise ConfigError(f"env.scenario_weights = {np.round(w, 6).tolist()} are all zero; {allowed}")
+    shown = np.vectorize(lambda x: float(f"{x:.6g}"), otypes=[float])(w).tolist()
+    if not np.all(np.isfinite(w) & (w >= 0)):
+        raise ConfigError(f"env.scenario_weights = {shown} has a negative or non-finite weight; {allowed}")
+    if np.any(w > _F32.max):
+        raise ConfigError(f"env.scenario_weights = {shown} has a weight beyond float32's range (inf); {allowed}")
+    if np.any(w.sum(-1) > _F32.max):
+        raise ConfigError(f"env.scenario_weights = {shown} sum beyond float32's range; {allowed}")
+    if np.any(w.max(-1) < _F32.tiny):
+        raise ConfigError(f"env.scenario_weights = {shown} are all zero (in float32); {allowed}")
 
 
 def check_env_params(params) -> None:
     """Concrete `EnvParams` (built by hand, batched or not) against the declarations of `EnvConfig` and
     `RewardConfig`: ranges and relations, as a config is checked. Raises ConfigError (a ValueError)."""
+    # the weights first: their rule is more than a range (check_traced would only say they must be finite)
+    check_scenario_weights(concrete(params.scenario_weights, "env.scenario_weights"))
     check_traced(params, EnvConfig, "env")
     check_env_relations({n: concrete(getattr(params, n), f"env.{n}") for n in traced_names(EnvConfig)})
     check_traced(params.reward, RewardConfig, "reward")
@@ -742,3 +693,10 @@ def griddable_fields() -> list[str]:
         + ["reward.scheme"]
         + [f"reward.{n}" for n in traced_names(RewardConfig)]
     )
+
+
+def __getattr__(name: str):
+    """CROWD_SCENARIOS, OBSTACLE_SCENARIOS and SCENARIOS: the registry's names, read when accessed."""
+    if name in _SCENARIO_LISTS:
+        return registry.names(_SCENARIO_LISTS[name])
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

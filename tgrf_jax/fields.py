@@ -152,9 +152,11 @@ def _coerce(value, default, name: str):
     return value
 
 
-def check_fields(obj, prefix: str) -> None:
-    """Check every field of a config dataclass against its declared range/choices."""
+def check_fields(obj, prefix: str, names=None) -> None:
+    """Check every field of a config dataclass (or those in `names`) against its declared range/choices."""
     for f in dataclasses.fields(obj):
+        if names is not None and f.name not in names:
+            continue
         value = getattr(obj, f.name)
         name = f"{prefix}.{f.name}" if prefix else f.name
         meta = f.metadata

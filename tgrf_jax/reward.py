@@ -9,10 +9,10 @@ Every scheme is a value of one `RewardParams` pytree: the shape of r_disc is a n
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax.numpy as jnp
 from flax import struct
-
-SCHEMES = ("tgrf", "crowdnav_pp", "dsrnn", "tgrf_circle")
 
 
 def tgrf(x, h, sigma, mu=0.0):
@@ -25,6 +25,23 @@ def tgrf(x, h, sigma, mu=0.0):
     return h * jnp.exp(-jnp.square(x - mu) / (2.0 * jnp.square(sigma)))
 
 
+# The schemes, each a set of values of the fields below. `tgrf` is the paper's eq. 5 as the authors' code runs it
+# (h_disc is the absolute peak: 0.25 x |r_col| = 2.5); `crowdnav_pp` is the CrowdNav++ reward (the paper's "without
+# TGRF" baseline); `dsrnn` is CrowdNav++ without the prediction term; `tgrf_circle` is what the TGRF authors' code
+# runs with its Gaussian turned off (danger_zone_type 'circle'): CrowdNav++'s linear r_disc, but with TGRF's r_col
+# -10, d_disc 0.5 and 1.5 x progress. The paper does not say which of the two its "without TGRF" rows used.
+# The reference's reward parameters (paper Secs. 3.2-3.3; docs/reference.md).
+SCHEMES = ("tgrf", "crowdnav_pp", "dsrnn", "tgrf_circle")
+
+
+def reward_field(tgrf, crowdnav_pp, dsrnn, tgrf_circle, *, doc, low=None, high=None, low_inclusive=True):
+    """A field of `RewardParams`, declared once: its value under each scheme (in `SCHEMES`' order), its allowed
+    range and its meaning. `config.RewardConfig` derives its per-field override (range and doc) from this."""
+    defaults = dict(zip(SCHEMES, (tgrf, crowdnav_pp, dsrnn, tgrf_circle)))
+    allowed = dict(low=low, high=high, low_inclusive=low_inclusive, high_inclusive=True)
+    return struct.field(pytree_node=True, metadata=dict(scheme_defaults=defaults, doc=doc, **allowed))
+
+
 @struct.dataclass
 class RewardParams:
     """Numeric reward parameters (all traced; vmap over any of them).
@@ -32,90 +49,46 @@ class RewardParams:
     r_disc(d) = -tgrf(d, h_disc, sigma_disc) + disc_slope * (d - d_disc)   for d < d_disc
     r_pot     = tgrf(0, pot_factor * delta_d, sigma_pot) = pot_factor * delta_d
     r_pred    = min_{i,k} 1[robot within pred_radius of human i's prediction at t+k] * pred_penalty / 2^(k + pred_c)
+
+    Each field is declared once, here: `reward_field(tgrf, crowdnav_pp, dsrnn, tgrf_circle, ...)` gives its value
+    in each scheme, its allowed range and its doc.
     """
 
-    r_goal: jnp.ndarray
-    r_col: jnp.ndarray
-    d_disc: jnp.ndarray
-    h_disc: jnp.ndarray
-    sigma_disc: jnp.ndarray
-    disc_slope: jnp.ndarray
-    pot_factor: jnp.ndarray
-    sigma_pot: jnp.ndarray
-    pred_penalty: jnp.ndarray
-    pred_c: jnp.ndarray
-    pred_radius: jnp.ndarray
-    spin_coef: jnp.ndarray
-    back_coef: jnp.ndarray
+    # fmt: off
+    #                        value in the scheme:  tgrf  crowdnav_pp    dsrnn  tgrf_circle   allowed
+    r_goal:       jnp.ndarray = reward_field(   10.0,        10.0,    10.0,         10.0,  low=0.0,
+        doc="reward for reaching the goal")
+    r_col:        jnp.ndarray = reward_field(  -10.0,       -20.0,   -20.0,        -10.0,  high=0.0,
+        doc="reward (penalty) for a collision")
+    d_disc:       jnp.ndarray = reward_field(    0.5,        0.25,    0.25,          0.5,  low=0.0,
+        doc="danger-zone radius, edge-to-edge metres")
+    h_disc:       jnp.ndarray = reward_field(    2.5,         0.0,     0.0,          0.0,  low=0.0,
+        doc="TGRF peak of the danger penalty (absolute)")
+    sigma_disc:   jnp.ndarray = reward_field(    0.2,         0.2,     0.2,          0.2,  low=0.0, low_inclusive=False,
+        doc="TGRF width of the danger penalty")
+    disc_slope:   jnp.ndarray = reward_field(    0.0,         2.5,     2.5,          2.5,  low=0.0,
+        doc="linear danger penalty slope (CrowdNav++: 2.5)")
+    pot_factor:   jnp.ndarray = reward_field(    1.5,         2.0,     2.0,          1.5,  low=0.0,
+        doc="progress reward per metre towards the goal")
+    sigma_pot:    jnp.ndarray = reward_field( 1000.0,      1000.0,  1000.0,       1000.0,  low=0.0, low_inclusive=False,
+        doc="TGRF width of r_pot")
+    pred_penalty: jnp.ndarray = reward_field(  -10.0,       -20.0,     0.0,        -10.0,  high=0.0,
+        doc="r_col used by r_pred (0 disables r_pred)")
+    pred_c:       jnp.ndarray = reward_field(    1.0,         1.0,     1.0,          1.0,  low=0.0,
+        doc="r_pred exponent offset: penalty / 2^(k + c)")
+    pred_radius:  jnp.ndarray = reward_field(    0.6,         0.6,     0.6,          0.6,  low=0.0,
+        doc="centre distance counted as inside a prediction")
+    spin_coef:    jnp.ndarray = reward_field(    4.5,         4.5,     4.5,          4.5,  low=0.0,
+        doc="unicycle: penalty per rad^2 of heading change")
+    back_coef:    jnp.ndarray = reward_field(    2.0,         2.0,     2.0,          2.0,  low=0.0,
+        doc="unicycle: penalty per m/s of backwards speed")
+    # fmt: on
 
 
-# Scheme defaults. `tgrf` is the paper's eq. 5 as the authors' code runs it (h_disc is the absolute peak:
-# 0.25 x |r_col| = 2.5); `crowdnav_pp` is the CrowdNav++ reward (the paper's "without TGRF" baseline);
-# `dsrnn` is CrowdNav++ without the prediction term; `tgrf_circle` is what the TGRF authors' code runs with its
-# Gaussian turned off (danger_zone_type 'circle'): CrowdNav++'s linear r_disc, but with TGRF's r_col -10,
-# d_disc 0.5 and 1.5 x progress. The paper does not say which of the two its "without TGRF" rows used.
-# The reference's reward parameters (paper Secs. 3.2-3.3; docs/reference.md).
+# Derived from the declarations above: {scheme: {field: value}}.
 SCHEME_DEFAULTS: dict[str, dict[str, float]] = {
-    "tgrf": dict(
-        r_goal=10.0,
-        r_col=-10.0,
-        d_disc=0.5,
-        h_disc=2.5,
-        sigma_disc=0.2,
-        disc_slope=0.0,
-        pot_factor=1.5,
-        sigma_pot=1000.0,
-        pred_penalty=-10.0,
-        pred_c=1.0,
-        pred_radius=0.6,
-        spin_coef=4.5,
-        back_coef=2.0,
-    ),
-    "crowdnav_pp": dict(
-        r_goal=10.0,
-        r_col=-20.0,
-        d_disc=0.25,
-        h_disc=0.0,
-        sigma_disc=0.2,
-        disc_slope=2.5,
-        pot_factor=2.0,
-        sigma_pot=1000.0,
-        pred_penalty=-20.0,
-        pred_c=1.0,
-        pred_radius=0.6,
-        spin_coef=4.5,
-        back_coef=2.0,
-    ),
-    "dsrnn": dict(
-        r_goal=10.0,
-        r_col=-20.0,
-        d_disc=0.25,
-        h_disc=0.0,
-        sigma_disc=0.2,
-        disc_slope=2.5,
-        pot_factor=2.0,
-        sigma_pot=1000.0,
-        pred_penalty=0.0,
-        pred_c=1.0,
-        pred_radius=0.6,
-        spin_coef=4.5,
-        back_coef=2.0,
-    ),
-    "tgrf_circle": dict(
-        r_goal=10.0,
-        r_col=-10.0,
-        d_disc=0.5,
-        h_disc=0.0,
-        sigma_disc=0.2,
-        disc_slope=2.5,
-        pot_factor=1.5,
-        sigma_pot=1000.0,
-        pred_penalty=-10.0,
-        pred_c=1.0,
-        pred_radius=0.6,
-        spin_coef=4.5,
-        back_coef=2.0,
-    ),
+    scheme: {f.name: f.metadata["scheme_defaults"][scheme] for f in dataclasses.fields(RewardParams)}
+    for scheme in SCHEMES
 }
 
 

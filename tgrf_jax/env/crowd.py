@@ -19,7 +19,7 @@ from tgrf_jax import reward as reward_lib
 from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
 from tgrf_jax.env import humans as humans_lib
 from tgrf_jax.env import obstacles as obstacles_lib
-from tgrf_jax.env import orca, prediction, scenario, sensing
+from tgrf_jax.env import orca, prediction, scenarios, sensing
 from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.gst import history as gst_history
 from tgrf_jax.env.gst import weights as gst_weights
@@ -114,6 +114,8 @@ class CrowdNavEnv:
     def __init__(self, config: EnvConfig | Mapping | str | pathlib.Path | None = None, reward="tgrf"):
         self.config = _as_env_config(config)
         self.reward_config = _as_reward_config(reward)
+        # the env's scenarios (its env.scenario, or the mix's), from the registry; EnvState.scenario indexes it
+        self.scenario_table = scenarios.ScenarioTable.of(self.config)
 
     def __repr__(self):
         c = self.config
@@ -221,20 +223,17 @@ class CrowdNavEnv:
     def reset_env(self, key, params: EnvParams) -> tuple[Obs, EnvState]:
         k_robot, k_humans = jax.random.split(key)
         tries = self.config.spawn_tries
-        sampler = scenario.sampler(self.config)
+        table = self.scenario_table
         # Folded keys (not splits) keep the robot and crowd of a full-crowd circle-crossing episode what they were
         # before the neighbour distance, the crowd size and the scenario became random.
-        if self.config.scenario == "mix":
-            index = sampler.global_index(scenario.draw_scenario(jax.random.fold_in(key, 3), params.scenario_weights))
-        else:
-            index = jnp.int32(scenario.scenario_index(self.config.scenario))
-        robot = scenario.robot_start(k_robot, params, sampler, index, tries)
-        layout, dropped = self._layout(jax.random.fold_in(key, 4), params, robot, sampler, index)
-        active = scenario.active_slots(jax.random.fold_in(key, 2), params, self.config.num_humans)
-        humans = scenario.spawn_humans(
-            k_humans, params, robot, self.config.num_humans, tries, active, sampler, index, layout
+        index = table.draw(jax.random.fold_in(key, 3), params.scenario_weights)
+        robot = table.robot(k_robot, params, index, tries)
+        layout, dropped = self._layout(jax.random.fold_in(key, 4), params, robot, index)
+        active = scenarios.active_slots(jax.random.fold_in(key, 2), params, self.config.num_humans)
+        humans = scenarios.spawn_humans(
+            k_humans, params, robot, self.config.num_humans, tries, active, table, index, layout
         )
-        neighbor_dist = scenario.uniform(
+        neighbor_dist = scenarios.uniform(
             jax.random.fold_in(key, 1), (), params.orca_neighbor_dist_min, params.orca_neighbor_dist_max
         )
         state = EnvState(
@@ -258,15 +257,15 @@ class CrowdNavEnv:
             predictions, _ = self._predict(state, params, visible)
         return self._observe(state, params, predictions, visible), state
 
-    def _layout(self, key, params: EnvParams, robot: Robot, sampler, index) -> tuple[Obstacles, jnp.ndarray]:
+    def _layout(self, key, params: EnvParams, robot: Robot, index) -> tuple[Obstacles, jnp.ndarray]:
         """The episode's obstacles: the scenario's slots, then the fixed `env.obstacles`; a slot that would hold the
         robot's start or goal is removed (and counted), so the robot never starts in a wall nor has its goal in one."""
         cfg = self.config
         if cfg.obstacle_slots == 0:
             return obstacles_lib.empty(0, cfg.obstacle_vertices), jnp.zeros((), jnp.int32)
         parts = []
-        if sampler.draws_obstacles:
-            vertices, counts = sampler.layout(key, params, robot, index, cfg.spawn_tries)
+        if self.scenario_table.draws_obstacles:
+            vertices, counts = self.scenario_table.layout(key, params, robot, index, cfg.spawn_tries)
             pad = cfg.obstacle_vertices - vertices.shape[1]
             parts.append(Obstacles(jnp.pad(vertices, ((0, 0), (0, pad), (0, 0))), counts))
         if cfg.obstacles:
@@ -358,12 +357,11 @@ class CrowdNavEnv:
 
         step_count = state.step_count + 1
         if cfg.num_humans > 0:
-            sampler = scenario.sampler(cfg)
-            humans = scenario.change_goals(
-                k_goal, humans, robot, params, step_count, cfg.goal_tries, sampler, state.scenario, layout
+            humans = scenarios.change_goals(
+                k_goal, humans, robot, params, step_count, cfg.goal_tries, self.scenario_table, state.scenario, layout
             )
-            humans = scenario.respawn_arrived(
-                k_respawn, humans, robot, params, cfg.spawn_tries, sampler, state.scenario, layout
+            humans = scenarios.respawn_arrived(
+                k_respawn, humans, robot, params, cfg.spawn_tries, self.scenario_table, state.scenario, layout
             )
         next_state = state.replace(robot=robot, humans=humans, step_count=step_count)
 

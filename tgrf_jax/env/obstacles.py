@@ -31,7 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from tgrf_jax.config import ConfigError, check_polygons
+from tgrf_jax.fields import ConfigError
+from tgrf_jax.polygons import check_polygons
 
 # The exponent cap of `social_force.step`: tiny B or deep penetration give a huge, not an infinite, push.
 _MAX_EXPONENT = 30.0

@@ -85,7 +85,7 @@ class EnvState:
     goal_dist_ref: jnp.ndarray  # () goal distance at the last step outside the danger zone (for r_pot)
     step_count: jnp.ndarray  # () int32 steps taken in this episode
     orca_neighbor_dist: jnp.ndarray  # () the humans' ORCA neighbour distance, drawn once per episode
-    scenario: jnp.ndarray  # () int32 index of the episode's scenario in config.SCENARIOS
+    scenario: jnp.ndarray  # () int32 the episode's scenario: its index in config.drawn_scenarios (fixed scenario: 0)
     obstacles: Obstacles  # the episode's static obstacles (env.obstacle_slots slots; none: 0 slots)
     obstacles_dropped: jnp.ndarray  # () int32 obstacle slots removed at reset for lying on the robot's start or goal
     history: Any = None  # learned predictor's observed frames (tgrf_jax.env.gst.history), else None

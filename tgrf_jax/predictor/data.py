@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from tgrf_jax.env import scenario, sensing
+from tgrf_jax.env import scenarios, sensing
 from tgrf_jax.env.crowd import CrowdNavEnv
 from tgrf_jax.env.gst.history import FILLER_OFFSET
 from tgrf_jax.env.gst.model import OBS_LEN, PRED_LEN
@@ -93,9 +93,9 @@ class Recorder:
 def _new_goal(key, state: EnvState, params):
     """Half the time the median human position, half the time uniform in the arena."""
     k_coin, k_pt = jax.random.split(key)
-    uniform = scenario.uniform(k_pt, (2,), -params.arena_size, params.arena_size)
+    uniform = scenarios.uniform(k_pt, (2,), -params.arena_size, params.arena_size)
     median = jnp.median(state.humans.pos, axis=0)
-    return jnp.where(scenario.uniform(k_coin, ()) < 0.5, median, uniform)
+    return jnp.where(scenarios.uniform(k_coin, ()) < 0.5, median, uniform)
 
 
 def make_recorder(config: CollectConfig):

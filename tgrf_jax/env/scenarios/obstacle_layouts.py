@@ -1,0 +1,225 @@
+"""The obstacle scenarios: an episode's static obstacles (its layout) and the crowd samplers that read them.
+
+Humans have no planner beyond ORCA's local avoidance (as in RVO2), so each obstacle scenario draws human starts
+and goals whose straight path stays clear of the walls: along a corridor, through a door's gap, down one arm of
+an intersection. The robot gets no such help: its goal may lie behind a wall's end or a door. A layout fills the
+scenario obstacle slots (`config.SCENARIO_OBSTACLE_SLOTS` of up to `config.SCENARIO_OBSTACLE_VERTICES`
+vertices); the geometry of obstacles (distances, LiDAR) is `tgrf_jax.env.obstacles`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from tgrf_jax.config import SCENARIO_OBSTACLE_SLOTS, SCENARIO_OBSTACLE_VERTICES
+from tgrf_jax.env.geometry import norm
+from tgrf_jax.env.scenarios import open_space as open_space_lib
+from tgrf_jax.env.scenarios.open_space import lane_robot, stream_goal
+from tgrf_jax.env.scenarios.sampling import box, uniform
+from tgrf_jax.scenario_registry import Scenario
+
+_WALL_CLEARANCE = 0.6  # how far from a wall the humans' lanes stay (the largest human radius plus a margin)
+
+
+def slots(*polygons):
+    """(vertices (S, V, 2), num_vertices (S,)) of the scenario slots from polygons (V_i, 2) of up to V vertices."""
+    vertices = jnp.zeros((SCENARIO_OBSTACLE_SLOTS, SCENARIO_OBSTACLE_VERTICES, 2), jnp.float32)
+    counts = jnp.zeros((SCENARIO_OBSTACLE_SLOTS,), jnp.int32)
+    for m, polygon in enumerate(polygons):
+        vertices = vertices.at[m, : polygon.shape[0]].set(polygon)
+        counts = counts.at[m].set(polygon.shape[0])
+    return vertices, counts
+
+
+def box_polygon(cx, cy, hx, hy, angle=0.0):
+    """A rectangle's 4 vertices, counter-clockwise, centred at (cx, cy) with half-sizes (hx, hy), rotated."""
+    corners = jnp.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * jnp.stack([hx, hy])
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([cx + c * corners[:, 0] - s * corners[:, 1], cy + s * corners[:, 0] + c * corners[:, 1]], -1)
+
+
+def _segment(x0, y0, x1, y1):
+    return jnp.stack([jnp.stack([x0, y0]), jnp.stack([x1, y1])]).astype(jnp.float32)
+
+
+# corridor: two walls at x = -w and x = +w along the robot's way (a corridor 2.5 to 4 m wide, w drawn per
+# episode); humans walk it both ways in lanes clear of the walls.
+def _corridor_layout(key, params, robot, tries):
+    w = uniform(key, (), 1.25, 2.0)
+    r = params.circle_radius
+    return slots(_segment(-w, r, -w, -r), _segment(w, -r, w, r))
+
+
+def _corridor_lane(layout):
+    """Half-width of the humans' lanes: inside the corridor, clear of its walls."""
+    return jnp.maximum(layout.vertices[1, 0, 0] - _WALL_CLEARANCE, 0.1)
+
+
+def _corridor_spawn(key, params, layout, n, tries):
+    k_pos, k_goal = jax.random.split(key)
+    c, r = _corridor_lane(layout), params.circle_radius
+    direction = jnp.where(jnp.arange(n) % 2 == 0, 1.0, -1.0)[:, None]
+    return box(k_pos, (n, tries), -c, c, -r, r), stream_goal(k_goal, params, direction, (n, tries), c)
+
+
+def _corridor_new_goal(key, params, layout, humans, tries):
+    direction = jnp.sign(humans.goal[:, 1:2])
+    return stream_goal(key, params, direction, (humans.pos.shape[0], tries), _corridor_lane(layout))
+
+
+def _corridor_respawn(key, params, layout, pos, goal, tries):
+    k_pos, k_goal = jax.random.split(key)
+    direction, c = jnp.sign(goal[1]), _corridor_lane(layout)
+    return (stream_goal(k_pos, params, -direction, (tries,), c), stream_goal(k_goal, params, direction, (tries,), c))
+
+
+CORRIDOR = Scenario(lane_robot, _corridor_spawn, _corridor_new_goal, _corridor_respawn, layout=_corridor_layout)
+
+
+# doorway: a wall across the robot's way at y = y_d in [-1, 1] with one gap 1.2 to 2 m wide centred at x_d in
+# [-1, 1]; humans cross it both ways through the gap, on straight lines through a point of the gap.
+def _doorway_layout(key, params, robot, tries):
+    u = uniform(key, (3,))
+    y, x, half = 2.0 * u[0] - 1.0, 2.0 * u[1] - 1.0, 0.6 + 0.4 * u[2]
+    r = params.circle_radius + 2.0
+    return slots(_segment(-r, y, x - half, y), _segment(x + half, y, r, y))
+
+
+def _door(layout):
+    """The gap's centre (2,) and half-width."""
+    left_end, right_start = layout.vertices[0, 1], layout.vertices[1, 0]
+    return 0.5 * (left_end + right_start), 0.5 * (right_start[0] - left_end[0])
+
+
+def _through_door(key, layout, shape, side):
+    """Start and goal on opposite sides of the door (`side` +1: the start below it), their straight line crossing
+    the wall inside the gap, each 2 to 6 m from it."""
+    k_x, k_a, k_d = jax.random.split(key, 3)
+    centre, half = _door(layout)
+    cross = centre[0] + (2.0 * uniform(k_x, shape) - 1.0) * jnp.maximum(half - _WALL_CLEARANCE, 0.0)
+    angle = (2.0 * uniform(k_a, shape) - 1.0) * 0.6
+    dist = uniform(k_d, shape + (2,), 2.0, 6.0)
+    ux, uy = jnp.sin(angle), jnp.cos(angle) * side
+    point = jnp.stack([cross, jnp.broadcast_to(centre[1], shape)], -1)
+    direction = jnp.stack([ux, uy], -1)
+    return point - dist[..., :1] * direction, point + dist[..., 1:] * direction
+
+
+def _doorway_spawn(key, params, layout, n, tries):
+    side = jnp.where(jnp.arange(n) % 2 == 0, 1.0, -1.0)[:, None]
+    return _through_door(key, layout, (n, tries), side)
+
+
+def _doorway_new_goal(key, params, layout, humans, tries):
+    # back through the door from the side the human is on now
+    side = jnp.where(humans.pos[:, 1:2] < _door(layout)[0][1], 1.0, -1.0)
+    return _through_door(key, layout, (humans.pos.shape[0], tries), side)[1]
+
+
+def _doorway_respawn(key, params, layout, pos, goal, tries):
+    k_side, k_pair = jax.random.split(key)
+    side = jnp.where(uniform(k_side, ()) < 0.5, 1.0, -1.0)
+    return _through_door(k_pair, layout, (tries,), side)
+
+
+DOORWAY = Scenario(lane_robot, _doorway_spawn, _doorway_new_goal, _doorway_respawn, layout=_doorway_layout)
+
+
+# intersection: two corridors of half-width w (1.25 to 2 m) crossing at the origin, walled by four corner blocks,
+# so people coming along the cross corridor are hidden until they reach the crossing (a blind corner). The robot
+# goes straight up its corridor; two humans in three walk the cross corridor, the others the robot's.
+def _intersection_layout(key, params, robot, tries):
+    w = uniform(key, (), 1.25, 2.0)
+    r = params.circle_radius
+    half, mid = 0.5 * (r - w), 0.5 * (r + w)
+    return slots(*(box_polygon(sx * mid, sy * mid, half, half) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))))
+
+
+def _intersection_lane(layout):
+    return jnp.maximum(layout.vertices[0, 0, 0] - _WALL_CLEARANCE, 0.1)  # the NE block's inner corner is (w, w)
+
+
+def _arm_pair(key, params, layout, shape, across, direction):
+    """Start and goal at the two ends of a corridor (`across`: the cross corridor along x), in its lane."""
+    k_s, k_g = jax.random.split(key)
+    c = _intersection_lane(layout)
+    start = stream_goal(k_s, params, -direction, shape, c)
+    goal = stream_goal(k_g, params, direction, shape, c)
+    swap = lambda p: jnp.where(across[..., None], p[..., ::-1], p)  # noqa: E731  (x, y) -> (y, x)
+    return swap(start), swap(goal)
+
+
+def _intersection_spawn(key, params, layout, n, tries):
+    k_pair, k_dir = jax.random.split(key)
+    across = jnp.broadcast_to((jnp.arange(n) % 3 != 2)[:, None], (n, tries))
+    direction = jnp.where(uniform(k_dir, (n, 1)) < 0.5, -1.0, 1.0) * jnp.ones((n, tries))
+    start, goal = _arm_pair(k_pair, params, layout, (n, tries), across, direction)
+    # spread the starts along the corridor so the crossing is busy from the first step
+    t = uniform(jax.random.fold_in(key, 1), (n, tries, 1))
+    return start + t * (goal - start) * 0.9, goal
+
+
+def _intersection_new_goal(key, params, layout, humans, tries):
+    across = jnp.abs(humans.goal[:, 0]) > jnp.abs(humans.goal[:, 1])
+    n = humans.pos.shape[0]
+    along = jnp.where(across, humans.goal[:, 0], humans.goal[:, 1])
+    direction = jnp.sign(along)[:, None] * jnp.ones((n, tries))
+    return _arm_pair(key, params, layout, (n, tries), jnp.broadcast_to(across[:, None], (n, tries)), direction)[1]
+
+
+def _intersection_respawn(key, params, layout, pos, goal, tries):
+    k_pair, k_kind = jax.random.split(key)
+    u = uniform(k_kind, (2,))
+    across = jnp.broadcast_to(u[0] < 2.0 / 3.0, (tries,))
+    direction = jnp.where(u[1] < 0.5, -1.0, 1.0) * jnp.ones((tries,))
+    return _arm_pair(k_pair, params, layout, (tries,), across, direction)
+
+
+INTERSECTION = Scenario(
+    lane_robot, _intersection_spawn, _intersection_new_goal, _intersection_respawn, layout=_intersection_layout
+)
+
+
+# random_obstacles: 1 to 8 boxes (sides 0.5 to 1.5 m, any orientation) scattered in the robot's arena, each clear
+# of the robot's start and goal and 0.6 m from the others (so there is always a way between them); humans cross
+# the circle as in circle_crossing, around the boxes.
+def _random_obstacles_layout(key, params, robot, tries):
+    k_count, k_box = jax.random.split(key)
+    count = 1 + jnp.floor(uniform(k_count, ()) * SCENARIO_OBSTACLE_SLOTS)
+    a = params.arena_size
+    u = uniform(k_box, (SCENARIO_OBSTACLE_SLOTS, tries, 5))
+    centre = (2.0 * u[..., :2] - 1.0) * a
+    half = 0.25 + 0.5 * u[..., 2:4]
+    angle = u[..., 4] * (0.5 * jnp.pi)
+    reach = jnp.sqrt(jnp.sum(half * half, -1))  # the box's circumradius
+    keep_off = reach + params.robot_radius + 0.5
+    margin = jnp.minimum(norm(centre - robot.pos) - keep_off, norm(centre - robot.goal) - keep_off)
+
+    def place(carry, m):
+        placed_centre, placed_reach, placed = carry
+        apart = norm(centre[m][:, None] - placed_centre[None]) - reach[m][:, None] - placed_reach[None] - 0.6
+        ok = margin[m] >= 0.0
+        ok = ok & jnp.all((apart >= 0.0) | ~placed[None], axis=-1)
+        pick = jnp.argmax(ok)
+        use = jnp.any(ok) & (m < count)
+        carry = (
+            placed_centre.at[m].set(centre[m, pick]),
+            placed_reach.at[m].set(reach[m, pick]),
+            placed.at[m].set(use),
+        )
+        box = box_polygon(centre[m, pick, 0], centre[m, pick, 1], half[m, pick, 0], half[m, pick, 1], angle[m, pick])
+        return carry, (box, jnp.where(use, 4, 0).astype(jnp.int32))
+
+    init = (
+        jnp.zeros((SCENARIO_OBSTACLE_SLOTS, 2)),
+        jnp.zeros((SCENARIO_OBSTACLE_SLOTS,)),
+        jnp.zeros((SCENARIO_OBSTACLE_SLOTS,), bool),
+    )
+    _, (boxes, counts) = jax.lax.scan(place, init, jnp.arange(SCENARIO_OBSTACLE_SLOTS))
+    return boxes.astype(jnp.float32), counts
+
+
+RANDOM_OBSTACLES = dataclasses.replace(open_space_lib.CIRCLE_CROSSING, layout=_random_obstacles_layout)
