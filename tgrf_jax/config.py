@@ -15,11 +15,11 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
 import yaml
 
 from tgrf_jax import reward as reward_lib
 from tgrf_jax import scenario_registry as registry
+from tgrf_jax.env_rules import check_env_relations, check_scenario_weights, scenario_list
 from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
     ConfigError,
     _coerce,
@@ -27,9 +27,6 @@ from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exp
     _unknown_key_error,
     apply_overrides,
     check_fields,
-    check_traced,
-    concrete,
-    first_where,
     from_dict,
     load_yaml,
     spec,
@@ -151,7 +148,6 @@ MAX_BODY_RADIUS = 2.0
 MAX_SENSOR_RANGE = 100.0  # edge-to-edge metres: far beyond any arena the scenarios draw
 MAX_NAME_LENGTH = 200  # with room for a sweep's run suffix within a file name's 255 bytes
 _NAME = re.compile(r"[A-Za-z0-9_.=+-]+")
-_F32 = np.finfo(np.float32)
 # Episodes of one evaluation: their per-episode statistics stay on the host (about 40 bytes each).
 MAX_EPISODES = 10_000_000
 
@@ -278,7 +274,7 @@ class EnvConfig:
                         f"{self.scenario!r} is not 'mix', which alone reads it; allowed: null (or env.scenario: mix)"
                     )
         if self.mix_scenarios is not None:
-            object.__setattr__(self, "mix_scenarios", _scenario_list(self.mix_scenarios))
+            object.__setattr__(self, "mix_scenarios", scenario_list(self.mix_scenarios))
         if self.obstacles is not None:
             room = MAX_OBSTACLE_SLOTS - self.scenario_obstacle_slots
             polygons = check_polygons(
@@ -385,86 +381,6 @@ class EnvConfig:
     def from_yaml(cls, path) -> EnvConfig:
         data = load_yaml(path)
         return cls.from_dict(data.get("env", data))
-
-
-def _scenario_list(names) -> tuple[str, ...]:
-    """env.mix_scenarios as a tuple of distinct registered scenario names."""
-    known = registry.names()
-    allowed = f"allowed: a non-empty list of distinct names among {', '.join(known)}"
-    if isinstance(names, (str, bytes)) or not hasattr(names, "__iter__"):
-        raise ConfigError(f"env.mix_scenarios = {_show(names)} must be a list of scenario names; {allowed}")
-    names = tuple(names)
-    for i, name in enumerate(names):
-        if not isinstance(name, str) or name not in known:
-            raise ConfigError(f"env.mix_scenarios[{i}] = {name!r} is not a scenario; {allowed}")
-    if not names or len(set(names)) != len(names):
-        raise ConfigError(f"env.mix_scenarios = {_show(list(names))} is empty or names a scenario twice; {allowed}")
-    return names
-
-
-def check_env_relations(values: Mapping[str, Any]) -> None:
-    """The constraints between numeric env fields, on a config's values or on concrete `EnvParams` leaves (arrays:
-    every element); the scenario weights have their own `check_scenario_weights`."""
-    for lo, hi in (
-        ("human_radius_min", "human_radius_max"),
-        ("human_v_pref_min", "human_v_pref_max"),
-        ("orca_neighbor_dist_min", "orca_neighbor_dist_max"),
-        ("active_humans_min", "active_humans_max"),
-    ):
-        hit = first_where(np.asarray(values[lo]) > np.asarray(values[hi]), values[lo], values[hi])
-        if hit:
-            raise ConfigError(f"env.{lo} = {hit[0]!s} must be <= env.{hi} = {hit[1]!s}")
-    diagonal = 2.0 * np.sqrt(2.0) * np.asarray(values["arena_size"])
-    hit = first_where(
-        np.asarray(values["min_start_goal_dist"]) >= diagonal,
-        values["min_start_goal_dist"],
-        values["arena_size"],
-        diagonal,
-    )
-    if hit:
-        raise ConfigError(
-            f"env.min_start_goal_dist = {hit[0]!s} cannot be met in an arena of half-size {hit[1]!s}; "
-            f"allowed: < {hit[2]:.3f}"
-        )
-    hit = first_where(np.asarray(values["time_limit"]) < np.asarray(values["dt"]), values["time_limit"], values["dt"])
-    if hit:
-        raise ConfigError(f"env.time_limit = {hit[0]!s} must be >= env.dt = {hit[1]!s}")
-
-
-def check_scenario_weights(weights, drawn_scenarios=None) -> None:
-    """One weight per scenario of the mix (the last axis; leading axes: a batch), as the env draws with them in
-    float32: each finite and non-negative, at least one positive and their sum finite. Positive means a normal
-    float32 (XLA flushes smaller numbers to zero) and finite means within float32's range (a config's 1e39 is
-    float32's inf). `drawn_scenarios` None: any length."""
-    w = np.asarray(weights, np.float64)
-    names = drawn_scenarios or ()
-    count = len(names) if drawn_scenarios is not None else (w.shape[-1] if w.ndim else 1)
-    allowed = (
-        f"allowed: {count} finite, non-negative numbers, one per scenario of the mix"
-        + (f" ({', '.join(names)})" if names else "")
-        + f", at least one of them positive (>= {_F32.tiny:.3g}) and their sum finite (<= {_F32.max:.3g}, float32)"
-    )
-    if w.ndim == 0 or w.shape[-1] != count:
-        raise ConfigError(f"env.scenario_weights has {1 if w.ndim == 0 else w.shape[-1]} value(s); {allowed}")
-    shown = np.vectorize(lambda x: float(f"{x:.6g}"), otypes=[float])(w).tolist()
-    if not np.all(np.isfinite(w) & (w >= 0)):
-        raise ConfigError(f"env.scenario_weights = {shown} has a negative or non-finite weight; {allowed}")
-    if np.any(w > _F32.max):
-        raise ConfigError(f"env.scenario_weights = {shown} has a weight beyond float32's range (inf); {allowed}")
-    if np.any(w.sum(-1) > _F32.max):
-        raise ConfigError(f"env.scenario_weights = {shown} sum beyond float32's range; {allowed}")
-    if np.any(w.max(-1) < _F32.tiny):
-        raise ConfigError(f"env.scenario_weights = {shown} are all zero (in float32); {allowed}")
-
-
-def check_env_params(params) -> None:
-    """Concrete `EnvParams` (built by hand, batched or not) against the declarations of `EnvConfig` and
-    `RewardConfig`: ranges and relations, as a config is checked. Raises ConfigError (a ValueError)."""
-    # the weights first: their rule is more than a range (check_traced would only say they must be finite)
-    check_scenario_weights(concrete(params.scenario_weights, "env.scenario_weights"))
-    check_traced(params, EnvConfig, "env")
-    check_env_relations({n: concrete(getattr(params, n), f"env.{n}") for n in traced_names(EnvConfig)})
-    check_traced(params.reward, RewardConfig, "reward")
 
 
 def reward_config_from_dict(data: Mapping[str, Any] | None) -> RewardConfig:

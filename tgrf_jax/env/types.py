@@ -7,9 +7,10 @@ from typing import Any
 import jax.numpy as jnp
 from flax import struct
 
-from tgrf_jax.config import EnvConfig, check_env_params
+from tgrf_jax.config import EnvConfig, RewardConfig
 from tgrf_jax.env.obstacles import Obstacles
-from tgrf_jax.fields import traced_pytree, traced_values
+from tgrf_jax.env_rules import check_env_relations, check_scenario_weights
+from tgrf_jax.fields import check_traced, concrete, traced_names, traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
 # Episode outcome codes carried in `Info.outcome`: COLLISION is with a human, OBSTACLE_COLLISION with a static
@@ -35,7 +36,11 @@ class _EnvParamsMethods:
         """Check the concrete values (on the host; batched params element by element) against the ranges and
         relations declared in `EnvConfig` and `RewardConfig`, as a config is checked. Raises ConfigError (a
         ValueError) naming the field and what is allowed; returns the params."""
-        check_env_params(self)
+        # the weights first: their rule is more than a range (check_traced would only say they must be finite)
+        check_scenario_weights(concrete(self.scenario_weights, "env.scenario_weights"))
+        check_traced(self, EnvConfig, "env")
+        check_env_relations({n: concrete(getattr(self, n), f"env.{n}") for n in traced_names(EnvConfig)})
+        check_traced(self.reward, RewardConfig, "reward")
         return self
 
 
