@@ -35,6 +35,12 @@ def parser() -> argparse.ArgumentParser:
         help="a grid axis, e.g. --grid reward.h_disc=0.5,1.0,2.5 (repeatable: Cartesian product)",
     )
     p.add_argument(
+        "--paired",
+        action="store_true",
+        help="pair the --grid axes value by value instead of crossing them: the i-th values of all axes make "
+        "point i (explicit points, e.g. random-search draws); every axis needs as many values",
+    )
+    p.add_argument(
         "--seeds",
         default=None,
         metavar="N|S1,S2,...",
@@ -126,14 +132,15 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
     if args.from_step is not None and args.from_step < 0:
         raise ConfigError(f"--from-step = {args.from_step} must be >= 0")
     if args.resume:
-        if args.config or args.grid or args.overrides or args.seeds or args.out:
+        if args.config or args.grid or args.overrides or args.seeds or args.out or args.paired:
             raise ConfigError(
-                "--resume SWEEP_DIR takes no config file, --grid, --seeds, --set or --out (the "
+                "--resume SWEEP_DIR takes no config file, --grid, --paired, --seeds, --set or --out (the "
                 "sweep's own sweep.yaml is used)"
             )
         spec = load_sweep(args.resume)
     else:
-        spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides)  # layout: set below
+        # layout: set below
+        spec = SweepSpec.create(args.config, args.grid, args.seeds, args.overrides, paired=args.paired)
     distributed = bool(args.coordinator or args.distributed)
     if distributed and (args.layout or spec.layout) == "sequential":
         raise ConfigError("--layout sequential runs on one host; a multi-host sweep needs the batched layout")

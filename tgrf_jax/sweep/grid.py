@@ -1,6 +1,7 @@
 """A sweep's grid and run list: `--grid section.field=v1,v2,...` axes x seeds, validated before anything compiles.
 
-The Cartesian product of the grid values times the seeds is a batch of G runs, ordered point-major (point, seed).
+The Cartesian product of the grid values (or, with paired axes, their i-th values together: explicit points such as
+random-search draws) times the seeds is a batch of G runs, ordered point-major (point, seed).
 Only traced fields (`tgrf_jax.config.griddable_fields`) can be gridded, so all G runs share one compiled program;
 run i is exactly the tgrf-train run of its own config (the base config with the grid values and `run.seed`).
 """
@@ -36,9 +37,10 @@ def _with_values(base: dict, values: dict) -> dict:
     return base
 
 
-def parse_grid(items: list[str], base: dict | None = None) -> tuple[GridAxis, ...]:
+def parse_grid(items: list[str], base: dict | None = None, paired: bool = False) -> tuple[GridAxis, ...]:
     """Parse `--grid section.field=v1,v2,...` items; validate names (griddable) and every value (the config's own
-    range checks against `base`) before anything is compiled. Raises ConfigError naming the field."""
+    range checks against `base`) before anything is compiled. Raises ConfigError naming the field. `paired` axes
+    may repeat a value (a point is the i-th value of every axis; `check_paired` refuses repeated points)."""
     base = {} if base is None else base
     griddable, known = griddable_fields(), config_fields()
     axes: list[GridAxis] = []
@@ -77,7 +79,7 @@ def parse_grid(items: list[str], base: dict | None = None) -> tuple[GridAxis, ..
                 raise ConfigError(f"--grid {name}={raw_value.strip()}: {e}") from None
             canon.append(getattr(getattr(cfg, section), field))  # as the config stores it (1 -> 1.0)
         dups = sorted({str(v) for v in canon if canon.count(v) > 1})
-        if dups:
+        if dups and not paired:
             raise ConfigError(f"--grid {name}: repeated value(s) {', '.join(dups)}")
         axes.append(GridAxis(name, tuple(canon)))
     return tuple(axes)
@@ -134,6 +136,21 @@ class RunSpec:
     config: TrainConfig
 
 
+def check_paired(axes: tuple[GridAxis, ...]) -> None:
+    """Paired axes (`--paired`) give one point per index: every axis needs as many values, and no point twice."""
+    if not axes:
+        raise ConfigError("--paired pairs the values of --grid axes: give at least one --grid")
+    counts = {a.name: len(a.values) for a in axes}
+    if len(set(counts.values())) > 1:
+        listed = ", ".join(f"{name} has {n}" for name, n in counts.items())
+        raise ConfigError(f"--paired: every --grid axis needs the same number of values ({listed})")
+    points = list(zip(*[a.values for a in axes]))
+    repeated = next((p for i, p in enumerate(points) if p in points[:i]), None)
+    if repeated is not None:
+        shown = ", ".join(f"{a.short}={_fmt_value(v)}" for a, v in zip(axes, repeated))
+        raise ConfigError(f"--paired: the point {shown} is given twice")
+
+
 # batched: each device trains its share of the runs as one vmapped program (the runs of a device step together);
 # sequential: the runs take turns, each through tgrf-train's own program with its env shards on the devices.
 LAYOUTS = ("batched", "sequential")
@@ -153,6 +170,7 @@ class SweepSpec:
     axes: tuple[GridAxis, ...]
     seeds: tuple[int, ...]
     layout: str = "batched"  # how the runs share the devices: one of LAYOUTS
+    paired: bool = False  # points: the axes' i-th values together (explicit points) instead of their product
 
     @classmethod
     def create(
@@ -162,13 +180,17 @@ class SweepSpec:
         seeds: str | int | None = None,
         overrides: list[str] = (),
         layout: str = "batched",
+        paired: bool = False,
     ) -> SweepSpec:
         check_layout(layout)
         data = load_yaml(config_path) if config_path else {}
         base = TrainConfig.from_dict(apply_overrides(data, list(overrides))).to_dict()
-        axes = parse_grid(list(grid), base)
-        spec = cls(base, axes, parse_seeds(seeds, base["run"]["seed"]), layout)
-        count = len(spec.seeds) * math.prod(len(a.values) for a in axes)
+        axes = parse_grid(list(grid), base, paired)
+        if paired:
+            check_paired(axes)
+        spec = cls(base, axes, parse_seeds(seeds, base["run"]["seed"]), layout, paired)
+        points = len(axes[0].values) if paired else math.prod(len(a.values) for a in axes)
+        count = len(spec.seeds) * points
         if count > MAX_RUNS:
             raise ConfigError(f"the grid and seeds give {count:,} runs; allowed: at most {MAX_RUNS:,} per sweep")
         spec.runs()  # validates every run config (combinations included)
@@ -179,9 +201,8 @@ class SweepSpec:
         return TrainConfig.from_dict(self.base)
 
     def points(self) -> list[dict]:
-        return [
-            dict(zip([a.name for a in self.axes], combo)) for combo in itertools.product(*[a.values for a in self.axes])
-        ]
+        combine = zip if self.paired else itertools.product
+        return [dict(zip([a.name for a in self.axes], combo)) for combo in combine(*[a.values for a in self.axes])]
 
     def point_label(self, values: dict) -> str:
         return ", ".join(f"{k.split('.', 1)[1]}={_fmt_value(v)}" for k, v in values.items()) or "base"
@@ -210,6 +231,7 @@ class SweepSpec:
             "grid": {a.name: list(a.values) for a in self.axes},
             "seeds": list(self.seeds),
             "layout": self.layout,
+            **({"paired": True} if self.paired else {}),
             "runs": [{"name": r.name, "point": r.point, "seed": r.seed, "values": dict(r.values)} for r in self.runs()],
             "base": self.base,
         }
@@ -221,15 +243,17 @@ class SweepSpec:
             axes = tuple(GridAxis(k, tuple(v)) for k, v in (data.get("grid") or {}).items())
             # sweeps written before the layout was recorded ran batched
             layout = check_layout(data.get("layout", "batched"), f"{SWEEP_FILE}: layout")
-            return cls(base, axes, tuple(int(s) for s in data["seeds"]), layout)
+            paired = data.get("paired", False)
+            if not isinstance(paired, bool):
+                raise TypeError(f"paired = {paired!r} is not true or false")
+            return cls(base, axes, tuple(int(s) for s in data["seeds"]), layout, paired)
         except (KeyError, TypeError) as e:
             raise ConfigError(f"{SWEEP_FILE} is malformed: {e!r}") from None
 
     def describe(self) -> str:
         runs = self.runs()
-        lines = [
-            f"{len(self.points())} grid point(s) x {len(self.seeds)} seed(s) = {len(runs)} runs, {self.layout} layout"
-        ]
+        kind = "paired point(s)" if self.paired else "grid point(s)"
+        lines = [f"{len(self.points())} {kind} x {len(self.seeds)} seed(s) = {len(runs)} runs, {self.layout} layout"]
         for a in self.axes:
             lines.append(f"  {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")
         lines.append(f"  seeds: {', '.join(map(str, self.seeds))}")

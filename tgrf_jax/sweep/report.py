@@ -167,10 +167,12 @@ def _figure(figsize, ncols: int):
 
 
 def plot_sweep(sweep_dir, spec: SweepSpec, summary: list[dict]) -> list[pathlib.Path]:
-    """learning_curves.png, plus heatmap.png (two multi-valued axes) or grid_metrics.png (one)."""
+    """learning_curves.png, plus heatmap.png (two multi-valued axes) or grid_metrics.png (one) unless the axes are
+    paired."""
     sweep_dir = pathlib.Path(sweep_dir)
     out = [plot_learning_curves(sweep_dir, spec)]
-    multi = [a for a in spec.axes if len(a.values) > 1]
+    # paired points do not fill a grid: a heat map or a metric-per-value plot of them would mislead
+    multi = [] if spec.paired else [a for a in spec.axes if len(a.values) > 1]
     have_eval = bool(summary) and "success_rate_mean" in summary[0]
     metrics = ["success_rate", "itr_disc", "itr_future"] if have_eval else ["train_success_rate", "train_return"]
     if len(multi) == 2:
