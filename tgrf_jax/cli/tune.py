@@ -36,7 +36,7 @@ def parser() -> argparse.ArgumentParser:
         help="a searched field and its bounds, e.g. --space reward.h_disc=0.5:5:log (repeatable); any numeric "
         "traced field (tgrf-sweep --list-griddable)",
     )
-    p.add_argument("--population", type=int, default=8, help="members (default 8; a multiple of the devices)")
+    p.add_argument("--population", type=int, default=8, help="members (default 8)")
     p.add_argument(
         "--objective",
         default="success - 0.5 * collision",
@@ -50,7 +50,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--final-episodes", type=int, default=500, help="the best member's final test episodes")
     p.add_argument("--out", help="tune directory (default: runs/<timestamp>_tune_<run.name>)")
     p.add_argument("--resume", metavar="TUNE_DIR", help="continue the tune in TUNE_DIR from its last checkpoint")
-    p.add_argument("--devices", type=int, default=None, metavar="N", help="use the first N devices (default: all)")
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        metavar="N",
+        help="use the first N devices, N dividing the population (default: the most devices that divide it)",
+    )
     p.add_argument("--print-plan", action="store_true", help="print the members and exit (nothing is compiled)")
     return p
 

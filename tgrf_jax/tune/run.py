@@ -207,15 +207,21 @@ def run_tune(
         return _run_tune(spec, tune_dir, resume, log, stop_after_updates, num_devices)
 
 
-def _devices(num_devices):
+def split_devices(available: int, population: int) -> int:
+    """The most devices, at most `available`, that split the population evenly (the members are not padded: a
+    padded copy would be scored and could be copied)."""
+    return max(d for d in range(1, available + 1) if population % d == 0)
+
+
+def _devices(num_devices, population: int):
     import jax
 
     devices = jax.devices()
-    if num_devices is not None:
-        if not 1 <= num_devices <= len(devices):
-            raise ConfigError(f"--devices {num_devices}: allowed 1..{len(devices)} (devices: {len(devices)})")
-        devices = devices[:num_devices]
-    return devices
+    if num_devices is None:
+        return devices[: split_devices(len(devices), population)]
+    if not 1 <= num_devices <= len(devices):
+        raise ConfigError(f"--devices {num_devices}: allowed 1..{len(devices)} (devices: {len(devices)})")
+    return devices[:num_devices]
 
 
 def _run_tune(spec: TuneSpec, tune_dir: pathlib.Path, resume, log, stop_after_updates, num_devices) -> TuneResult:
@@ -233,7 +239,7 @@ def _run_tune(spec: TuneSpec, tune_dir: pathlib.Path, resume, log, stop_after_up
     run_cfg = members[0].config.run
     columns = [dict(run=m.name, point=m.point, seed=m.seed, **m.values) for m in members]
     say_box: list[Callable[[str], None]] = [log]
-    program = TunedProgram(spec, _devices(num_devices), lambda line: say_box[0](line))
+    program = TunedProgram(spec, _devices(num_devices, spec.population), lambda line: say_box[0](line))
     with RunDirectory.open(
         tune_dir, program, run_cfg, run_dirs=run_dirs, columns=columns, log=log, where="tune dir"
     ) as directory:

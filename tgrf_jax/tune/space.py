@@ -11,10 +11,12 @@ import dataclasses
 import difflib
 import math
 
+import numpy as np
+
 from tgrf_jax.config import ConfigError, TrainConfig, config_fields, griddable_fields
 from tgrf_jax.fields import set_dotted
 
-__all__ = ["SearchDim", "hparams_path", "parse_space", "searchable_fields"]
+__all__ = ["SearchDim", "draw_values", "hparams_path", "parse_space", "searchable_fields"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,3 +98,16 @@ def parse_space(items: list[str], base: dict | None = None) -> tuple[SearchDim, 
         _check_in_config(dim, item, base)
         dims.append(dim)
     return tuple(dims)
+
+
+def draw_values(dims: tuple[SearchDim, ...], count: int, seed: int) -> np.ndarray:
+    """(count, D) float32 values drawn uniformly within each dimension's bounds (log-uniformly on a log scale) from
+    `seed`: a tune's starting members, and a random search's points (the same seed gives the same draws)."""
+    u = np.random.default_rng(seed).uniform(size=(count, len(dims)))
+    values = np.empty_like(u)
+    for j, d in enumerate(dims):
+        if d.log:
+            values[:, j] = np.exp(np.log(d.low) + u[:, j] * (np.log(d.high) - np.log(d.low)))
+        else:
+            values[:, j] = d.low + u[:, j] * (d.high - d.low)
+    return values.astype(np.float32)

@@ -15,7 +15,7 @@ from tgrf_jax.fields import apply_overrides, load_yaml, set_dotted
 from tgrf_jax.sweep.grid import RunSpec
 from tgrf_jax.tune.objective import parse_objective
 from tgrf_jax.tune.pbt import num_replaced
-from tgrf_jax.tune.space import SearchDim, parse_space
+from tgrf_jax.tune.space import SearchDim, draw_values, parse_space
 
 TUNE_FILE = "tune.yaml"
 MAX_POPULATION = 1_000
@@ -87,15 +87,7 @@ class TuneSpec:
 
     def initial_values(self) -> np.ndarray:
         """(P, D) starting values: uniform (log-uniform on a log scale) within the bounds, from the run's seed."""
-        rng = np.random.default_rng(self.base["run"]["seed"])
-        u = rng.uniform(size=(self.population, len(self.dims)))
-        values = np.empty_like(u)
-        for j, d in enumerate(self.dims):
-            if d.log:
-                values[:, j] = np.exp(np.log(d.low) + u[:, j] * (np.log(d.high) - np.log(d.low)))
-            else:
-                values[:, j] = d.low + u[:, j] * (d.high - d.low)
-        return values.astype(np.float32)
+        return draw_values(self.dims, self.population, self.base["run"]["seed"])
 
     def members(self) -> tuple[RunSpec, ...]:
         """One run per member: the base config with its starting values and its own seed (run.seed + i)."""
