@@ -212,7 +212,8 @@ def _run_sweep(
                 f"layout switched from {switched_from} to {spec.layout} (recorded in {SWEEP_FILE}): from here the "
                 f"runs equal an unswitched resume up to float rounding, not bit for bit"
             )
-        say(f"sweep of {len(runs)} runs ({len(spec.points())} grid points x {len(spec.seeds)} seeds)")
+        points = "paired points" if spec.paired else "grid points"
+        say(f"sweep of {len(runs)} runs ({len(spec.points())} {points} x {len(spec.seeds)} seeds)")
         for a in spec.axes:
             say(f"  grid {a.name}: {', '.join(_fmt_value(v) for v in a.values)}")
         say(f"  seeds: {', '.join(map(str, spec.seeds))}")
