@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+import shlex
 import sys
 
 from tgrf_jax.cli.common import Recovery, check_jax, check_writable, command_line
@@ -16,9 +17,10 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
     recovery.resume = "rerun the same command to resume"  # finished rows are skipped, a started one resumes
     parser = argparse.ArgumentParser(
         prog="tgrf-reproduce",
-        description="Run an experiment of the paper (a list of tgrf-sweeps, one per row) and write its report "
-        "(Markdown and CSV, our numbers beside the paper's) after every row. Rerun the same command after any "
-        "interruption: finished rows are skipped, a started row resumes from its last checkpoint.",
+        description="Run an experiment (a list of rows, each one tgrf-sweep or, in a search experiment, one "
+        "tgrf-tune) and write its report (Markdown and CSV: our numbers beside the paper's, or the searches "
+        "compared) after every row. Rerun the same command after any interruption: finished rows are skipped, a "
+        "started row resumes from its last checkpoint.",
     )
     parser.add_argument(
         "experiment",
@@ -33,7 +35,7 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
     parser.add_argument(
         "--print-plan",
         action="store_true",
-        help="print each row's tgrf-sweep command and state, then exit (nothing runs)",
+        help="print each row's tgrf-sweep (or tgrf-tune) command and state, then exit (nothing runs)",
     )
     parser.add_argument(
         "--report-only",
@@ -49,12 +51,12 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
     parser.add_argument(
         "--layout",
         choices=("batched", "sequential", "auto"),
-        help="the tgrf-sweep layout of the rows this command trains: new rows start in it (default: "
-        "auto, sequential on CPUs), started rows switch to it (default: they keep theirs)",
+        help="the tgrf-sweep layout of the sweep rows this command trains: new rows start in it (default: "
+        "auto, sequential on CPUs), started rows switch to it (default: they keep theirs); tune rows train batched",
     )
     args = parser.parse_args(argv)
 
-    from tgrf_jax.experiments import report, runner
+    from tgrf_jax.experiments import runner
 
     if args.list:
         for name in spec_lib.available():
@@ -76,6 +78,11 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
             )
     whole = exp.shrunk(steps=args.steps, seeds=args.seeds)  # the report always covers every row
     exp = whole.shrunk(rows=rows)
+    if args.export_pretrained and exp.search:
+        raise ConfigError(
+            f"--export-pretrained exports the best policies of sweep rows; {exp.name!r} compares searches (every "
+            "member of its rows is a run directory that tgrf-eval and tgrf-export take)"
+        )
     out = pathlib.Path(args.out or pathlib.Path("runs") / "reproduce" / exp.name)
     runner.check_out_dir(exp, out)
     if not (args.print_plan or args.report_only):
@@ -85,11 +92,12 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
         check_writable(args.export_pretrained, "--export-pretrained", directory=True)
     if args.print_plan:
         for row in exp.rows:
-            state = runner.row_state(out / row.name)
-            cmd = " ".join(
-                ["tgrf-sweep"] + spec_lib.sweep_args(exp, row, args.layout or "auto") + ["--out", str(out / row.name)]
-            )
-            print(f"{row.name} [{state}]: {cmd}")
+            state = runner.row_state(out / row.name, row.kind)
+            if row.kind == "grid":
+                print(f"{row.name} [{state}]: the finished sweep {spec_lib.portable(row.results)}")
+                continue
+            cmd = spec_lib.row_command(exp, row, args.layout or "auto") + ["--out", str(out / row.name)]
+            print(f"{row.name} [{state}]: {shlex.join(cmd)}")
         return 0
     if args.report_only:
         if not out.is_dir():
@@ -97,7 +105,7 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
                 f"--out {str(out)!r} does not exist: no rows to report (tgrf-reproduce "
                 f"{args.experiment} --out {out} trains them)"
             )
-        for path in report.write(whole, out):
+        for path in runner.write_report(whole, out):
             print(path)
         if args.export_pretrained:
             for path in runner.export_finished(exp, out, args.export_pretrained):

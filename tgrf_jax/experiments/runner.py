@@ -1,9 +1,11 @@
-"""Run an experiment row by row as tgrf-sweep processes, resumably, and keep its report up to date.
+"""Run an experiment row by row as tgrf-sweep (or, for tune rows, tgrf-tune) processes, resumably, and keep its
+report up to date.
 
-Each row lives in `<out>/<row>/`, a plain tgrf-sweep directory. A row is finished when its `evals.csv` exists;
-a row with a checkpoint resumes from it; a row stopped before its first checkpoint starts again (nothing of it
-was kept). So the command can be stopped and restarted any number of times. Each sweep runs in a child
-process: a crash or an out-of-memory in one row leaves the others and the report intact.
+Each row lives in `<out>/<row>/`, a plain tgrf-sweep or tgrf-tune directory. A row is finished when its results
+exist (a sweep's `evals.csv`, a tune's `tune.md`); a row with a checkpoint resumes from it; a row stopped before
+its first checkpoint starts again (nothing of it was kept). So the command can be stopped and restarted any number
+of times. Each row runs in a child process: a crash or an out-of-memory in one row leaves the others and the
+report intact. A search experiment's grid row is read from the finished sweep it names, never trained.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import datetime
 import json
 import os
 import pathlib
+import shlex
 import shutil
 import signal
 import subprocess
@@ -25,8 +28,8 @@ from collections.abc import Callable
 import yaml
 
 from tgrf_jax.config import ConfigError
-from tgrf_jax.experiments import report
-from tgrf_jax.experiments.spec import Experiment, Row, portable, sweep_args
+from tgrf_jax.experiments import report, search
+from tgrf_jax.experiments.spec import Experiment, Row, portable, row_command
 from tgrf_jax.storage.files import write_atomic
 
 EXPERIMENT_FILE = "experiment.yaml"
@@ -103,19 +106,36 @@ def machine() -> str:
     return desc
 
 
-def row_state(row_dir: pathlib.Path) -> str:
-    """'done', 'damaged' (finished, but its evals.csv is not whole, or its last invocation is unrecorded: a rerun
-    of its finished sweep repairs it), 'resumable', 'stale' (started, no checkpoint yet) or 'new'."""
-    if (row_dir / "evals.csv").is_file():
-        return "done" if report.evals_problem(row_dir) is None and _recorded(row_dir) else "damaged"
-    if not (row_dir / "sweep.yaml").is_file():
+# per kind of row: the file its tool writes first (the row has started) and the one it writes last (finished)
+_MARKERS = {
+    "sweep": ("sweep.yaml", "evals.csv"),
+    "random": ("sweep.yaml", "evals.csv"),
+    "tune": ("tune.yaml", "tune.md"),
+}
+TOOLS = {"tgrf-sweep": "tgrf_jax.cli.sweep", "tgrf-tune": "tgrf_jax.cli.tune"}
+
+
+def row_state(row_dir: pathlib.Path, kind: str = "sweep") -> str:
+    """'done', 'damaged' (finished, but its results are not whole, or its last invocation is unrecorded: a rerun
+    of its finished sweep or tune repairs it), 'resumable', 'stale' (started, no checkpoint yet) or 'new'; a grid
+    row of a search experiment is 'read' (its results come from elsewhere)."""
+    if kind == "grid":
+        return "read"
+    started, finished = _MARKERS[kind]
+    if (row_dir / finished).is_file():
+        return "done" if _results_problem(row_dir, kind) is None and _recorded(row_dir) else "damaged"
+    if not (row_dir / started).is_file():
         return "new"
     return "resumable" if _has_step(row_dir) else "stale"
 
 
-def row_problem(row_dir: pathlib.Path) -> str:
+def _results_problem(row_dir: pathlib.Path, kind: str) -> str | None:
+    return search.tune_problem(row_dir) if kind == "tune" else report.evals_problem(row_dir)
+
+
+def row_problem(row_dir: pathlib.Path, kind: str = "sweep") -> str:
     """Why a 'damaged' row is not done."""
-    return report.evals_problem(row_dir) or f"{PROVENANCE_FILE} does not record the invocation that finished it"
+    return _results_problem(row_dir, kind) or f"{PROVENANCE_FILE} does not record the invocation that finished it"
 
 
 def _has_step(row_dir: pathlib.Path) -> bool:
@@ -156,7 +176,7 @@ def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
         old = _load_recorded(recorded)
         new = exp.to_dict()
         old_rows = {r["name"]: r for r in old.get("rows", [])}
-        clash = [k for k in ("config", "seeds") if old.get(k) != new.get(k)]
+        clash = [k for k in ("config", "seeds", "space", "objective") if old.get(k) != new.get(k)]
         clash += [f"row {r['name']}" for r in new["rows"] if r["name"] in old_rows and old_rows[r["name"]] != r]
         if clash:
             raise ConfigError(
@@ -164,7 +184,7 @@ def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
                 "use another --out, or the same --steps/--seeds as before"
             )
     elif out.is_dir():
-        started = sorted(p.name for p in out.iterdir() if (p / "sweep.yaml").is_file())
+        started = sorted(p.name for p in out.iterdir() if any((p / m).is_file() for m in ("sweep.yaml", "tune.yaml")))
         if started:  # their budget and seeds are recorded nowhere else: results could mix settings
             raise ConfigError(
                 f"{str(out)!r} holds rows ({', '.join(started[:5])}) but no {EXPERIMENT_FILE}, so "
@@ -212,9 +232,10 @@ def _stop_with_parent() -> None:
 def run_row(
     exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None], layout: str | None = None
 ) -> int:
-    """Train (or resume) one row as a tgrf-sweep child process; returns its exit code. `layout`: a new row's
-    sweep layout (default auto), or the layout a started row switches to (default: the one it has)."""
-    state = row_state(row_dir)
+    """Train (or resume) one row as a tgrf-sweep (tune rows: tgrf-tune) child process; returns its exit code.
+    `layout`: a new sweep row's layout (default auto), or the layout a started one switches to (default: the one
+    it has); a tune trains its population as one batched program."""
+    state = row_state(row_dir, row.kind)
     prov_path = row_dir / PROVENANCE_FILE
     if state == "stale":
         say(f"  {row.name}: stopped before its first checkpoint; starting it again")
@@ -225,13 +246,14 @@ def run_row(
             write_atomic(prov_path, kept)
         else:
             shutil.rmtree(row_dir)
+    tool, *args = row_command(exp, row, layout or "auto")
     if state == "damaged":
-        say(f"  {row.name}: {row_problem(row_dir)}; its finished sweep writes its results again")
-    cmd = [sys.executable, "-m", "tgrf_jax.cli.sweep"]
+        say(f"  {row.name}: {row_problem(row_dir, row.kind)}; its finished {tool[5:]} writes its results again")
+    cmd = [sys.executable, "-m", TOOLS[tool]]
     if state in ("resumable", "damaged"):
-        cmd += ["--resume", str(row_dir)] + (["--layout", layout] if layout else [])
+        cmd += ["--resume", str(row_dir)] + (["--layout", layout] if layout and tool == "tgrf-sweep" else [])
     else:
-        cmd += sweep_args(exp, row, layout or "auto") + ["--out", str(row_dir)]
+        cmd += args + ["--out", str(row_dir)]
     prov = report.read_provenance(row_dir) or {"wall_s": 0.0, "invocations": []}
     started, commit = time.perf_counter(), source_commit()  # the code the sweep imports now, not at its end
     invocation = {
@@ -239,7 +261,7 @@ def run_row(
         "machine": machine(),
         "exit_code": None,
         "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "command": " ".join(["tgrf-sweep"] + [portable(a) if a == exp.config else a for a in cmd[3:]]),
+        "command": shlex.join([tool] + [portable(a) if a == exp.config else a for a in cmd[3:]]),
     }
     wall_before = float(prov.get("wall_s", 0.0))
     prov["invocations"].append(invocation)
@@ -278,6 +300,11 @@ def run_row(
             )
             write_atomic(prov_path, json.dumps(prov, indent=2))
     return code
+
+
+def write_report(exp: Experiment, out: pathlib.Path, say: Callable[[str], None] = print) -> list[pathlib.Path]:
+    """The experiment's report in `out`: the paper's layout, or for a search experiment its comparison."""
+    return search.write(exp, out, say) if exp.search else report.write(exp, out)
 
 
 def export_best(exp: Experiment, out: pathlib.Path, row: Row, dest_root) -> list[pathlib.Path]:
@@ -332,7 +359,7 @@ def export_finished(exp: Experiment, out: pathlib.Path, dest_root) -> list[pathl
     return [
         path
         for row in exp.rows
-        if row_state(out / row.name) == "done"
+        if row.kind == "sweep" and row_state(out / row.name) == "done"
         for path in export_best(exp, out, row, dest_root)
     ]
 
@@ -386,14 +413,15 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
         log_file.write(message + "\n")
 
     try:
-        states = {r.name: row_state(out / r.name) for r in exp.rows}
-        todo = [r for r in exp.rows if states[r.name] != "done"]
-        axes = " x ".join(f"{len(exp.axis_values(name))} {name}" for name in exp.grid_names)
-        say(
-            f"[{exp.name}] {exp.title}: {len(exp.rows)} rows x {axes} values x {exp.seeds} seeds; "
-            f"{len(exp.rows) - len(todo)} rows already done; results in {out}"
-        )
-        report.write(report_exp, out)
+        states = {r.name: row_state(out / r.name, r.kind) for r in exp.rows}
+        todo = [r for r in exp.rows if states[r.name] not in ("done", "read")]
+        say(f"[{exp.name}] {exp.title}: {exp.size()}; {len(exp.rows) - len(todo)} rows already done; results in {out}")
+        for row in report_exp.rows:  # what a grid row reads must be usable before hours go into the others
+            if row.kind == "grid":
+                note = search.check_grid(exp, row)
+                if note:
+                    say(f"[{exp.name}] note: {note}")
+        write_report(report_exp, out, say)
         t0 = time.perf_counter()
         for i, row in enumerate(todo):
             done = len(exp.rows) - len(todo) + i
@@ -413,7 +441,7 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
             if code != 0:
                 say(f"[{exp.name}] row {row.name} stopped (exit code {code}); rerun the same command to resume")
                 return 130 if code in (130, -2) else code
-            paths = report.write(report_exp, out)
+            paths = write_report(report_exp, out, say)
             say(f"[{exp.name}] row {row.name} done; report: {', '.join(str(p) for p in paths)}")
         if export_to is not None:
             for path in export_finished(exp, out, export_to):
