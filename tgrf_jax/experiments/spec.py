@@ -95,10 +95,6 @@ class Row:
     interval: int | None = None  # tune: updates between exploit steps (None: tgrf-tune's default, a tenth)
     results: str | None = None  # grid: the absolute path of the finished tgrf-sweep directory it reads
 
-    @property
-    def trains(self) -> bool:
-        return self.kind != "grid"
-
 
 @dataclasses.dataclass(frozen=True)
 class Experiment:
