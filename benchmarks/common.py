@@ -13,9 +13,15 @@ import jax
 
 
 def machine_info() -> dict:
+    """The machine, the software, the code's commit and the date of a measurement."""
+    import datetime
+
+    from tgrf_jax.experiments.runner import source_commit
     from tgrf_jax.runtime.cpu import cpu_model
 
     return {
+        "commit": source_commit(),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "cpu": cpu_model(),
         "cpu_count": os.cpu_count(),
         "platform": platform.platform(),

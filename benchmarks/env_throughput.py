@@ -155,6 +155,22 @@ def measure(
     return row
 
 
+def _routing_pieces(env: CrowdNavEnv, params, state) -> dict:
+    """The humans' routing among obstacles: its roadmap (built at reset) and their targets (every step)."""
+    if state.routing is None:
+        return {}
+    from tgrf_jax.env import routing
+
+    def roadmap(s):
+        return routing.build_roadmap(s.obstacles, s.routing.clearance, s.routing.radius)
+
+    def targets(s):
+        h = s.humans
+        return routing.targets(s.routing, h.pos, h.goal, h.radius, s.obstacles)
+
+    return {"routing_roadmap": (roadmap, (state,)), "routing_targets": (targets, (state,))}
+
+
 def breakdown(policy: str, num_humans: int, batch: int, repeats: int, extra: dict | None = None) -> dict:
     """Milliseconds per batched call of the pieces of one auto-reset step."""
     from tgrf_jax.env import humans as humans_lib
@@ -172,6 +188,7 @@ def breakdown(policy: str, num_humans: int, batch: int, repeats: int, extra: dic
             (state,),
         ),
         "reset": (lambda k: env.reset(k, params), (keys,)),
+        **_routing_pieces(env, params, state),
         "step_without_reset": (lambda k, s, a: env.step_env(k, s, a, params), (keys, state, actions)),
         "step_with_auto_reset": (lambda k, s, a: env.step(k, s, a, params), (keys, state, actions)),
     }
@@ -187,11 +204,13 @@ OBSTACLE_ROWS = (
     ("open space + LiDAR 180", {"lidar_rays": 180}),
     ("random_obstacles", {"scenario": "random_obstacles"}),
     ("random_obstacles + LiDAR 180", {"scenario": "random_obstacles", "lidar_rays": 180}),
+    ("random_obstacles, no routing", {"scenario": "random_obstacles", "human_routing": False}),
 )
 
 
 def obstacle_costs(mesh, out) -> None:
-    """`--obstacles`: the env step's rate with obstacles and a LiDAR against the open space, in one run."""
+    """`--obstacles`: the env step's rate with obstacles and a LiDAR against the open space, and with the humans'
+    routing switched off, in one run."""
     batch, repeats = 1024, 3
     info = machine_info()
     print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")

@@ -11,7 +11,7 @@ import orbax.checkpoint as ocp
 
 from tgrf_jax import CrowdNavEnv
 from tgrf_jax.config import TrainConfig
-from tgrf_jax.env import EnvState, Humans, Robot
+from tgrf_jax.env import EnvState, Humans, Robot, stuck
 from tgrf_jax.env import obstacles as obstacles_lib
 
 
@@ -84,6 +84,7 @@ def hand_state(
         scenario=jnp.zeros((), jnp.int32),
         obstacles=obstacles_lib.empty(),
         obstacles_dropped=jnp.zeros((), jnp.int32),
+        progress=stuck.fresh(humans),
     )
 
 

@@ -7,7 +7,7 @@ import pytest
 from helpers import CompileCounter, hand_state, make_env, to_goal
 
 from tgrf_jax.config import ConfigError, EnvConfig
-from tgrf_jax.env import scenarios
+from tgrf_jax.env import scenarios, stuck
 
 
 def _padded(state, capacity):
@@ -25,7 +25,7 @@ def _padded(state, capacity):
             active=pad(h.active, False),
         )
     )
-    return state.replace(humans=humans)
+    return state.replace(humans=humans, progress=stuck.fresh(humans))
 
 
 def _crossing_state(n):

@@ -188,6 +188,11 @@ class EnvConfig:
         doc="rays of the robot's 360-degree 2-D LiDAR over env.sensor_range (0: no LiDAR)",
     )
     occlusion: bool = spec(False, doc="humans hidden behind an obstacle are not observed")
+    human_routing: bool = spec(
+        True,
+        doc="among obstacles, humans route around them and a human that stays stuck gets a new goal "
+        "(docs/walls.md); false: straight at their goals with local avoidance only",
+    )
     human_policy: str = spec("orca", choices=("orca", "social_force"))
     predictor: str = spec("const_vel", choices=("none", "const_vel", "truth", "gst"))
     predictor_params: str = spec(
@@ -251,6 +256,20 @@ class EnvConfig:
     orca_safety_space: float = traced(0.15, low=0.0)
     orca_time_horizon_obst: float = traced(
         5.0, low=0.0, low_inclusive=False, doc="seconds of safety from static obstacles (RVO2's timeHorizonObst)"
+    )
+    route_margin: float = traced(
+        0.3,
+        low=0.0,
+        high=2.0,
+        doc="routing among obstacles: the humans' roadmap points lie env.human_radius_max + this many metres "
+        "from every obstacle (docs/scenarios.md, 'Routing')",
+    )
+    unstuck_after: float = traced(
+        10.0,
+        low=0.0,
+        high=MAX_EPISODE_SECONDS,
+        doc="among obstacles: a human that has stayed within 0.5 m of one point this many seconds, away from its "
+        "goal, gets a new goal from its scenario (0: never)",
     )
     sf_a: float = traced(2.0, low=0.0)
     sf_b: float = traced(1.0, low=0.0, low_inclusive=False)
@@ -588,7 +607,20 @@ class TrainConfig:
         return data
 
     def to_yaml(self) -> str:
-        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+        """The config as YAML, with a comment line for each of its `notes`."""
+        notes = "".join(f"# note: {note}\n" for note in self.notes())
+        return notes + yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    def notes(self) -> list[str]:
+        """Settings that are allowed but do nothing in this config (said where the config is shown, not errors)."""
+        found = []
+        h_wall = self.reward.resolved()["h_wall"]
+        if h_wall > 0 and self.env.obstacle_slots == 0:
+            found.append(
+                f"reward.h_wall = {h_wall:g} but the env has no obstacles (no env.obstacles and no obstacle "
+                "scenario): the wall term stays 0"
+            )
+        return found
 
 
 def config_fields() -> list[str]:

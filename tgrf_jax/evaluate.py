@@ -55,6 +55,10 @@ class EpisodeStats:
     num_humans: jnp.ndarray  # active humans of the episode
     min_dist_obstacle: jnp.ndarray  # smallest edge distance to a static obstacle (inf without obstacles)
     obstacles_dropped: jnp.ndarray  # obstacle slots removed at reset for lying on the robot's start or goal
+    human_steps: jnp.ndarray  # active humans summed over the episode's steps
+    stuck_steps: jnp.ndarray  # of them stuck (tgrf_jax.env.stuck)
+    unreachable_steps: jnp.ndarray  # of them with no path to their goal
+    goals_reassigned: jnp.ndarray  # humans given a new goal for staying stuck
 
 
 # Edge-to-edge distance below which a human is inside the robot's personal space (docs/metrics.md).
@@ -111,6 +115,10 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
         num_humans=jnp.sum(state.humans.active, -1, dtype=jnp.int32),
         min_dist_obstacle=inf,
         obstacles_dropped=state.obstacles_dropped,
+        human_steps=izeros,
+        stuck_steps=izeros,
+        unreachable_steps=izeros,
+        goals_reassigned=izeros,
     )
     alive = jnp.ones(n_episodes, bool)
     carry = policy.initialize_carry(n_episodes)
@@ -173,6 +181,10 @@ def run_episodes(env: CrowdNavEnv, policy: Policy, key, n_episodes: int, params:
             num_humans=stats.num_humans,
             min_dist_obstacle=jnp.minimum(stats.min_dist_obstacle, jnp.where(alive, info.obstacle_dist, jnp.inf)),
             obstacles_dropped=stats.obstacles_dropped,
+            human_steps=add(stats.human_steps, info.humans_active),
+            stuck_steps=add(stats.stuck_steps, info.humans_stuck),
+            unreachable_steps=add(stats.unreachable_steps, info.humans_unreachable),
+            goals_reassigned=add(stats.goals_reassigned, info.goals_reassigned),
         )
         return t + 1, key, obs, state, carry, alive & ~done, stats, (vel, acc)
 
@@ -229,6 +241,9 @@ class EvalResult:
     min_ttc: float = math.nan  # mean over episodes (with a collision course) of the smallest time-to-collision (s)
     time_stalled: float = math.nan  # seconds per episode below STALL_SPEED
     mean_humans: float = math.nan  # active humans per episode
+    stuck_rate: float = math.nan  # % of active human-steps in which a human is stuck (tgrf_jax.env.stuck)
+    unreachable_rate: float = math.nan  # % of active human-steps in which a human's goal has no path
+    goals_reassigned: float = math.nan  # humans per episode given a new goal for staying stuck
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in dataclasses.asdict(self).items()}
@@ -289,6 +304,9 @@ def summarize(stats: EpisodeStats) -> EvalResult:
         min_ttc=finite_mean(s.min_ttc),
         time_stalled=mean(s.stall_steps * (s.time / steps)),
         mean_humans=mean(s.num_humans.astype(float)),
+        stuck_rate=100.0 * ratio(s.stuck_steps, s.human_steps),
+        unreachable_rate=100.0 * ratio(s.unreachable_steps, s.human_steps),
+        goals_reassigned=mean(s.goals_reassigned.astype(float)),
     )
 
 
@@ -357,6 +375,9 @@ EXTRA_METRIC_LABELS = (
     ("min_ttc", "min TTC (s)", "{:.2f}"),
     ("time_stalled", "stalled (s)", "{:.2f}"),
     ("mean_humans", "humans", "{:.1f}"),
+    ("stuck_rate", "humans stuck (%)", "{:.2f}"),
+    ("unreachable_rate", "goal unreachable (%)", "{:.2f}"),
+    ("goals_reassigned", "new goals (stuck)", "{:.2f}"),
 )
 
 

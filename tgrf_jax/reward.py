@@ -49,6 +49,8 @@ class RewardParams:
     r_disc(d) = -tgrf(d, h_disc, sigma_disc) + disc_slope * (d - d_disc)   for d < d_disc
     r_pot     = tgrf(0, pot_factor * delta_d, sigma_pot) = pot_factor * delta_d
     r_pred    = min_{i,k} 1[robot within pred_radius of human i's prediction at t+k] * pred_penalty / 2^(k + pred_c)
+    r_wall(d) = -tgrf(d, h_wall, sigma_wall)                                for d < d_wall (d: edge distance to
+                                                                            the nearest static obstacle)
 
     Each field is declared once, here: `reward_field(tgrf, crowdnav_pp, dsrnn, tgrf_circle, ...)` gives its value
     in each scheme, its allowed range and its doc.
@@ -82,6 +84,12 @@ class RewardParams:
         doc="unicycle: penalty per rad^2 of heading change")
     back_coef:    jnp.ndarray = reward_field(    2.0,         2.0,     2.0,          2.0,  low=0.0,
         doc="unicycle: penalty per m/s of backwards speed")
+    h_wall:       jnp.ndarray = reward_field(    0.0,         0.0,     0.0,          0.0,  low=0.0,
+        doc="TGRF peak of the wall penalty (0: no wall term)")
+    sigma_wall:   jnp.ndarray = reward_field(    0.2,         0.2,     0.2,          0.2,  low=0.0, low_inclusive=False,
+        doc="TGRF width of the wall penalty")
+    d_wall:       jnp.ndarray = reward_field(    0.5,         0.5,     0.5,          0.5,  low=0.0,
+        doc="wall zone: the robot's edge distance to an obstacle below which the wall penalty applies")
     # fmt: on
 
 
@@ -114,10 +122,11 @@ class RewardTerms:
     pot: jnp.ndarray
     pred: jnp.ndarray
     kinematic: jnp.ndarray
+    wall: jnp.ndarray
 
     @property
     def total(self):
-        return self.goal + self.collision + self.disc + self.pot + self.pred + self.kinematic
+        return self.goal + self.collision + self.disc + self.pot + self.pred + self.kinematic + self.wall
 
 
 def disc_reward(dmin, p: RewardParams):
@@ -138,19 +147,37 @@ def pred_reward(pred_hits, p: RewardParams):
     return jnp.min(penalties, axis=(-2, -1), initial=0.0)
 
 
+def wall_reward(obstacle_dist, p: RewardParams):
+    """Wall penalty at the robot's edge distance `obstacle_dist` to the nearest obstacle (applies only where
+    obstacle_dist < d_wall): the danger zone's TGRF, centred on the wall, for the walls the paper's future work
+    names. Without obstacles the distance is inf and the term 0."""
+    return -tgrf(obstacle_dist, p.h_wall, p.sigma_wall)
+
+
 def step_reward(
-    p: RewardParams, *, collided, reached, dmin, delta_d, pred_hits, delta_heading=0.0, speed=0.0
+    p: RewardParams,
+    *,
+    collided,
+    reached,
+    dmin,
+    delta_d,
+    pred_hits,
+    delta_heading=0.0,
+    speed=0.0,
+    obstacle_dist=jnp.inf,
 ) -> RewardTerms:
     """Reward of one step, evaluated on the post-step state (as the reference does).
 
     Collision beats reaching the goal; inside d_disc the danger penalty replaces the progress reward.
     r_pred is added on every step, terminal ones included, as the reference code does.
-    `delta_heading` and `speed` feed the unicycle penalties (zero for holonomic robots).
+    `delta_heading` and `speed` feed the unicycle penalties (zero for holonomic robots); `obstacle_dist` the wall
+    term (inf: no obstacle).
     """
     collided = jnp.asarray(collided)
     reached = jnp.asarray(reached) & ~collided
     running = ~(collided | reached)
     in_danger = dmin < p.d_disc
+    in_wall_zone = obstacle_dist < p.d_wall
     zero = jnp.zeros((), jnp.float32)
     kinematic = -p.spin_coef * jnp.square(delta_heading) - p.back_coef * jnp.abs(jnp.minimum(speed, 0.0))
     return RewardTerms(
@@ -160,4 +187,6 @@ def step_reward(
         pot=jnp.where(running & ~in_danger, pot_reward(delta_d, p), zero),
         pred=pred_reward(pred_hits, p),
         kinematic=jnp.where(running, kinematic, zero),
+        # the safe distance keeps the gradient finite where the term does not apply (inf: no obstacle)
+        wall=jnp.where(running & in_wall_zone, wall_reward(jnp.where(in_wall_zone, obstacle_dist, 0.0), p), zero),
     )

@@ -30,6 +30,7 @@ TABLE_COLUMNS = (
     ("min_ttc", "min TTC (s)", "{:.2f}"),
     ("jerk_mean", "jerk (m/s^3)", "{:.2f}"),
     ("time_stalled", "stalled (s)", "{:.2f}"),
+    ("stuck_rate", "humans stuck (%)", "{:.2f}"),
 )
 
 

@@ -19,7 +19,7 @@ from tgrf_jax import reward as reward_lib
 from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
 from tgrf_jax.env import humans as humans_lib
 from tgrf_jax.env import obstacles as obstacles_lib
-from tgrf_jax.env import orca, prediction, scenarios, sensing
+from tgrf_jax.env import orca, prediction, routing, scenarios, sensing, stuck
 from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.gst import history as gst_history
 from tgrf_jax.env.gst import weights as gst_weights
@@ -39,6 +39,9 @@ from tgrf_jax.env.types import (
 
 _START_CLEARANCE = 0.2  # metres kept between the robot and an obstacle at its start and goal
 _RESET_CHUNK = 16  # fresh episodes computed together by step_batch (a step finishes a few per 512 envs)
+# Largest perturbation (m/s) of a routed ORCA human's preferred velocity against exact symmetries (as in RVO2's
+# examples): far below anything visible, enough to break a tie between two mirror-image humans.
+_JITTER = 1e-4
 
 
 def _as_env_config(config) -> EnvConfig:
@@ -245,7 +248,9 @@ class CrowdNavEnv:
             scenario=index,
             obstacles=layout,
             obstacles_dropped=dropped,
+            progress=stuck.fresh(humans),
             obstacle_table=self._obstacle_table(layout),
+            routing=self._plan_routes(layout, humans, params),
         )
         visible = self.visible(state, params)
         if self.config.predictor == "gst":
@@ -289,6 +294,43 @@ class CrowdNavEnv:
             return None
         return orca.process_obstacles(layout.vertices, layout.num_vertices)
 
+    @property
+    def routes_humans(self) -> bool:
+        """Whether the humans route around obstacles (env.human_routing, in an env with obstacle slots and humans)."""
+        cfg = self.config
+        return cfg.human_routing and cfg.obstacle_slots > 0 and cfg.num_humans > 0
+
+    def _plan_routes(self, layout: Obstacles, humans, params: EnvParams):
+        if not self.routes_humans:
+            return None
+        radius = humans_lib.body_radius(params.human_radius_max, params, self.config)
+        return routing.plan(layout, humans.goal, radius, radius + params.route_margin)
+
+    def _steering(self, key, state: EnvState, params: EnvParams):
+        """Where the humans head this step (None: at their goals) and how many cannot reach their goal."""
+        if state.routing is None:
+            return None, jnp.zeros((), jnp.int32)
+        h = state.humans
+        radii = humans_lib.body_radius(h.radius, params, self.config)
+        target, at_goal, reachable = routing.targets(state.routing, h.pos, h.goal, radii, state.obstacles)
+        k_angle, k_size = jax.random.split(key)
+        angle = jax.random.uniform(k_angle, h.radius.shape, maxval=2.0 * jnp.pi)
+        size = jax.random.uniform(k_size, h.radius.shape, maxval=_JITTER)
+        jitter = size[:, None] * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)
+        unreachable = jnp.sum(h.active & ~reachable, dtype=jnp.int32)
+        return humans_lib.Steering(target, at_goal, jitter), unreachable
+
+    def _unstick(self, key, humans, robot, params: EnvParams, progress, step_count, scenario, layout):
+        """A new goal for each human that has stayed still, away from its goal, for env.unstuck_after seconds."""
+        if not self.routes_humans:
+            return humans, progress, jnp.zeros((), jnp.int32)
+        still = stuck.still_seconds(progress, step_count, params.dt)
+        stale = stuck.away_from_goal(humans) & (params.unstuck_after > 0) & (still >= params.unstuck_after)
+        humans = scenarios.reassign_goals(
+            key, humans, robot, params, stale, self.config.goal_tries, self.scenario_table, scenario, layout
+        )
+        return humans, stuck.restart(progress, stale, step_count), jnp.sum(stale, dtype=jnp.int32)
+
     def visible(self, state: EnvState, params: EnvParams):
         """Humans the robot perceives: within sensor range and, with env.occlusion, in its line of sight."""
         visible = sensing.visible_mask(state, params)
@@ -323,6 +365,8 @@ class CrowdNavEnv:
 
         robot, delta_heading = move_robot(robot0, action, params, cfg.kinematics)
         layout = state.obstacles
+        # folded keys: the goal and respawn draws stay what they are without routing
+        steering, unreachable = self._steering(jax.random.fold_in(key, 5), state, params)
         human_vel = humans_lib.human_velocities(
             humans0,
             robot0 if cfg.robot_visible else None,
@@ -331,6 +375,7 @@ class CrowdNavEnv:
             state.orca_neighbor_dist,
             layout,
             state.obstacle_table,
+            steering,
         )
         humans = humans0.replace(pos=humans0.pos + human_vel * params.dt, vel=human_vel)
 
@@ -363,7 +408,15 @@ class CrowdNavEnv:
             humans = scenarios.respawn_arrived(
                 k_respawn, humans, robot, params, cfg.spawn_tries, self.scenario_table, state.scenario, layout
             )
-        next_state = state.replace(robot=robot, humans=humans, step_count=step_count)
+        progress = stuck.update(state.progress, humans, step_count)
+        stuck_now = stuck.stuck(progress, humans, step_count, params.dt)
+        humans, progress, reassigned = self._unstick(
+            jax.random.fold_in(key, 6), humans, robot, params, progress, step_count, state.scenario, layout
+        )
+        next_state = state.replace(robot=robot, humans=humans, step_count=step_count, progress=progress)
+        if state.routing is not None:
+            changed = jnp.any(humans.goal != humans0.goal, axis=-1)
+            next_state = next_state.replace(routing=routing.replan(state.routing, humans.goal, changed, layout))
 
         visible = self.visible(next_state, params)
         if cfg.predictor == "gst":
@@ -384,6 +437,7 @@ class CrowdNavEnv:
             pred_hits=pred_hits,
             delta_heading=delta_heading,
             speed=robot.speed,
+            obstacle_dist=obstacle_dist,
         )
         # The progress reference only moves outside the danger zone, so the first r_pot after leaving it pays
         # for all the progress made inside (the reference's telescoping potential).
@@ -413,6 +467,10 @@ class CrowdNavEnv:
             num_visible=jnp.sum(visible).astype(jnp.int32),
             obstacle_dist=obstacle_dist,
             obstacles_dropped=state.obstacles_dropped,
+            humans_active=jnp.sum(humans.active, dtype=jnp.int32),
+            humans_stuck=jnp.sum(stuck_now, dtype=jnp.int32),
+            goals_reassigned=reassigned,
+            humans_unreachable=unreachable,
             reward_terms=terms,
             final_obs=obs,
         )
@@ -425,7 +483,13 @@ class CrowdNavEnv:
             pred = gst_history.predictions(params.predictor, state.history)
             return pred.means, visible & pred.out_mask
         return prediction.predict(
-            state.humans, params, self.config, state.orca_neighbor_dist, state.obstacles, state.obstacle_table
+            state.humans,
+            params,
+            self.config,
+            state.orca_neighbor_dist,
+            state.obstacles,
+            state.obstacle_table,
+            state.routing,
         ), visible
 
     def _future_intrusion(self, state: EnvState, visible, predictions, params):
@@ -444,6 +508,7 @@ class CrowdNavEnv:
                 state.orca_neighbor_dist,
                 state.obstacles,
                 state.obstacle_table,
+                state.routing,
             )
         dist = norm(future - state.robot.pos)
         dist = jnp.where(visible[:, None], dist, jnp.inf)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+from flax import struct
 
 from tgrf_jax.config import EnvConfig
 from tgrf_jax.env import orca, social_force
@@ -18,8 +19,38 @@ def preferred_velocity(pos, goal):
     return jnp.where((dist > 1.0)[..., None], offset / dist[..., None], offset)
 
 
+@struct.dataclass
+class Steering:
+    """Where the humans head when it is not straight at their goals (routing among obstacles).
+
+    target (N, 2): the point each human heads for; at_goal (N,) bool: the target is the goal itself (ORCA then
+    slows within 1 m of it as usual, while an intermediate target is approached at full preferred speed);
+    jitter (N, 2): added to ORCA's preferred velocity, a tiny perturbation that breaks exact symmetries (as
+    RVO2's examples do), zeros for none.
+    """
+
+    target: jnp.ndarray
+    at_goal: jnp.ndarray
+    jitter: jnp.ndarray
+
+
+def steered_preference(pos, goal, steering: Steering):
+    """ORCA's preferred velocities (N, 2) towards the steering targets."""
+    offset = steering.target - pos
+    dist = safe_norm(offset)
+    toward = offset / jnp.maximum(dist, 1e-9)[..., None]
+    return jnp.where(steering.at_goal[..., None], preferred_velocity(pos, goal), toward) + steering.jitter
+
+
 # ORCA radius = r + 0.01 + safety_space in the reference (orca.py:85-88).
 ORCA_RADIUS_PAD = 0.01
+
+
+def body_radius(radius, params: EnvParams, config: EnvConfig):
+    """The room a human of `radius` keeps from walls and others: ORCA adds its pad and safety space."""
+    if config.human_policy == "orca":
+        return radius + ORCA_RADIUS_PAD + params.orca_safety_space
+    return radius
 
 
 def human_velocities(
@@ -30,6 +61,7 @@ def human_velocities(
     neighbor_dist,
     obstacles: Obstacles | None = None,
     obstacle_table: orca.ObstacleTable | None = None,
+    steering: Steering | None = None,
 ):
     """New velocities (N, 2) of all humans from the current joint state.
 
@@ -38,7 +70,8 @@ def human_velocities(
     (`EnvState.orca_neighbor_dist`). `obstacles`: the episode's static obstacles (ORCA: RVO2's obstacle lines;
     Social Force: the wall force), None or no slots for an open space. `obstacle_table`: optionally the same
     obstacles processed for ORCA (`orca.process_obstacles`, `EnvState.obstacle_table`): the same velocities,
-    without processing the obstacles again.
+    without processing the obstacles again. `steering`: where the humans head instead of their goals (None:
+    straight at their goals).
     """
     if obstacles is not None and obstacles.num_vertices.shape[-1] == 0:
         obstacles = None
@@ -46,6 +79,10 @@ def human_velocities(
     if n == 0:
         return jnp.zeros((0, 2))
     pos, vel, goal, radius, v_pref = humans.pos, humans.vel, humans.goal, humans.radius, humans.v_pref
+    if config.human_policy == "orca":
+        pref = preferred_velocity(pos, goal) if steering is None else steered_preference(pos, goal, steering)
+    elif steering is not None:
+        goal = steering.target  # Social Force pulls towards its goal at full speed: the target takes its place
     present = humans.active
     if robot is not None:
         present = jnp.concatenate([present, jnp.ones((1,), bool)])
@@ -55,13 +92,12 @@ def human_velocities(
         radius = jnp.concatenate([radius, params.robot_radius[None]])
         v_pref = jnp.concatenate([v_pref, params.robot_v_max[None]])
     if config.human_policy == "orca":
-        pref = preferred_velocity(pos, goal)
         if robot is not None:
-            pref = pref.at[-1].set(robot.vel)  # the robot's "preference" is what it is doing
+            pref = jnp.concatenate([pref, robot.vel[None]])  # the robot's "preference" is what it is doing
         new_vel = orca.solve(
             pos,
             vel,
-            radius + ORCA_RADIUS_PAD + params.orca_safety_space,
+            body_radius(radius, params, config),
             pref,
             v_pref,
             time_horizon=params.orca_time_horizon,

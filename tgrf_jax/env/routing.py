@@ -17,6 +17,10 @@ RVO2's own examples do, humans instead head for a point of their shortest path a
 
 Everything is dense, masked array code over fixed slot counts, so it runs under `jax.vmap` and `jit` like the
 rest of the environment; with no obstacle slots none of it is called.
+
+The environment keeps a `Routing` in its state: the roadmap (`plan`, at reset) and each human's goal costs,
+recomputed for the humans whose goal changed (`replan`; in a vmapped batch only the environments with a change do
+that work), and asks `targets` every step where each human heads.
 """
 
 from __future__ import annotations
@@ -26,9 +30,21 @@ import jax.numpy as jnp
 from flax import struct
 
 from tgrf_jax.env import obstacles as obstacle_lib
+from tgrf_jax.env.batching import cond_gathered
 from tgrf_jax.env.obstacles import Obstacles
 
-__all__ = ["UNREACHABLE", "Roadmap", "aim", "build_roadmap", "goal_costs", "visible"]
+__all__ = [
+    "UNREACHABLE",
+    "Roadmap",
+    "Routing",
+    "aim",
+    "build_roadmap",
+    "goal_costs",
+    "plan",
+    "replan",
+    "targets",
+    "visible",
+]
 
 UNREACHABLE = 1.0e9  # path length of a pair with no path (finite, so sums and minima stay finite)
 _TINY = 1e-12
@@ -169,3 +185,51 @@ def aim(roadmap: Roadmap, to_goal, position, goal, obstacles: Obstacles, radius=
     reachable = goal_in_sight | (best < UNREACHABLE)
     via = jnp.where(best < UNREACHABLE, roadmap.points[pick], goal)
     return jnp.where(goal_in_sight, goal, via), reachable
+
+
+@struct.dataclass
+class Routing:
+    """The humans' routing state of an episode: its roadmap (built for humans of radius up to `radius`, points
+    `clearance` from the obstacles) and each human's goal costs `to_goal` (H, N) (`goal_costs` of its goal)."""
+
+    roadmap: Roadmap
+    to_goal: jnp.ndarray
+    radius: jnp.ndarray
+    clearance: jnp.ndarray
+
+
+def _all_goal_costs(roadmap: Roadmap, goals, obstacles: Obstacles, radius):
+    return jax.vmap(goal_costs, in_axes=(None, 0, None, None))(roadmap, goals, obstacles, radius)
+
+
+def plan(obstacles: Obstacles, goals, radius, clearance) -> Routing:
+    """An episode's routing (at reset): the roadmap of `obstacles` and the goal costs of `goals` (H, 2)."""
+    radius = jnp.asarray(radius, jnp.float32)
+    clearance = jnp.asarray(clearance, jnp.float32)
+    roadmap = build_roadmap(obstacles, clearance, radius)
+    return Routing(roadmap, _all_goal_costs(roadmap, goals, obstacles, radius), radius, clearance)
+
+
+def replan(routing: Routing, goals, changed, obstacles: Obstacles) -> Routing:
+    """`routing` with the goal costs of the humans whose goal `changed` (H,) recomputed for their `goals` (H, 2).
+
+    Goals change rarely (every goal_change_interval, or on arrival), so under `vmap` only the environments with a
+    change compute any (`cond_gathered`)."""
+
+    def recompute(routing, goals, changed, obstacles):
+        fresh = _all_goal_costs(routing.roadmap, goals, obstacles, routing.radius)
+        return routing.replace(to_goal=jnp.where(changed[:, None], fresh, routing.to_goal))
+
+    def keep(routing, goals, changed, obstacles):
+        return routing
+
+    return cond_gathered(jnp.any(changed), recompute, keep, routing, goals, changed, obstacles)
+
+
+def targets(routing: Routing, positions, goals, radii, obstacles: Obstacles):
+    """Where each human heads now: (targets (H, 2), aims_at_goal (H,) bool: the target is the goal itself,
+    reachable (H,) bool: a path to the goal exists)."""
+    aimed = jax.vmap(aim, in_axes=(None, 0, 0, 0, None, 0))
+    target, reachable = aimed(routing.roadmap, routing.to_goal, positions, goals, obstacles, radii)
+    at_goal = jnp.all(target == goals, axis=-1)
+    return target, at_goal, reachable

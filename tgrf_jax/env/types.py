@@ -93,10 +93,13 @@ class EnvState:
     scenario: jnp.ndarray  # () int32 the episode's scenario: its index in config.drawn_scenarios (fixed scenario: 0)
     obstacles: Obstacles  # the episode's static obstacles (env.obstacle_slots slots; none: 0 slots)
     obstacles_dropped: jnp.ndarray  # () int32 obstacle slots removed at reset for lying on the robot's start or goal
+    progress: Any  # tgrf_jax.env.stuck.Progress: the humans' still spells (the stuck measure)
     history: Any = None  # learned predictor's observed frames (tgrf_jax.env.gst.history), else None
     # `obstacles` processed once for the ORCA humans (orca.process_obstacles, at reset), else None (then every
     # solve processes them itself, with the same results); derived data: replacing `obstacles` needs a new one
     obstacle_table: Any = None
+    # the humans' routing among the obstacles (tgrf_jax.env.routing.Routing), None without obstacle slots
+    routing: Any = None
 
 
 @struct.dataclass
@@ -141,5 +144,9 @@ class Info:
     num_visible: jnp.ndarray  # () int32
     obstacle_dist: jnp.ndarray  # () robot's edge distance to the nearest obstacle (inf without obstacles)
     obstacles_dropped: jnp.ndarray  # () int32, the episode's EnvState.obstacles_dropped
+    humans_active: jnp.ndarray  # () int32 humans present after the step
+    humans_stuck: jnp.ndarray  # () int32 of them stuck (tgrf_jax.env.stuck)
+    goals_reassigned: jnp.ndarray  # () int32 humans given a new goal this step for staying stuck (env.unstuck_after)
+    humans_unreachable: jnp.ndarray  # () int32 humans whose goal no path reaches (routing among obstacles)
     reward_terms: RewardTerms
     final_obs: Obs  # observation of the post-step state before any auto-reset (for bootstrapping)

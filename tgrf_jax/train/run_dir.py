@@ -174,6 +174,8 @@ def _train_run(config, run_dir: pathlib.Path, resume: bool, from_step, log, stop
     with RunDirectory.open(run_dir, program, config.run, tensorboard=True, log=log) as directory:
         if resume:
             directory.say(f"resuming {run_dir}")
+        for note in config.notes():
+            directory.say(f"note: {note}")
         out = train_program(
             program, directory, config.run, resume=resume, from_step=from_step, stop_after_updates=stop_after_updates
         )

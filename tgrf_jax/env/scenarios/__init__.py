@@ -11,7 +11,13 @@ respawns are drawn (docs/scenarios.md; docs/design.md, "Scenarios", for adding o
 """
 
 from tgrf_jax.env.scenarios import obstacle_layouts, open_space
-from tgrf_jax.env.scenarios.episodes import ScenarioTable, change_goals, respawn_arrived, spawn_humans
+from tgrf_jax.env.scenarios.episodes import (
+    ScenarioTable,
+    change_goals,
+    reassign_goals,
+    respawn_arrived,
+    spawn_humans,
+)
 from tgrf_jax.env.scenarios.sampling import PARKING, active_slots, park, uniform
 from tgrf_jax.scenario_registry import Scenario, register
 
@@ -37,6 +43,7 @@ __all__ = [
     "active_slots",
     "change_goals",
     "park",
+    "reassign_goals",
     "register",
     "respawn_arrived",
     "spawn_humans",

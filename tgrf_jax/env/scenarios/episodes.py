@@ -213,12 +213,41 @@ def _switch_goals(
     n = humans.pos.shape[0]
     k_coin, k_cand = jax.random.split(key)
     switch = (uniform(k_coin, (n,)) < params.goal_change_prob) & humans.active
-    candidates = table._call("new_goal", index, k_cand, params, layout, humans, static=(tries,))
+    return _new_goals(k_cand, humans, robot, params, index, layout, switch, tries, table)
+
+
+def _new_goals(key, humans: Humans, robot: Robot, params: EnvParams, index, layout, who, tries: int, table):
+    """`humans` with the goals of `who` (N,) bool redrawn by the scenario, clear of the others and the obstacles."""
+    candidates = table._call("new_goal", index, key, params, layout, humans, static=(tries,))
     margin = clearance(
         candidates, humans.radius, *_others_excluding_self(humans, robot, params), params.spawn_clearance
     )
     margin = with_obstacles(margin, candidates, humans.radius, layout, params.spawn_clearance)
-    return humans.replace(goal=jnp.where(switch[:, None], choose(candidates, margin), humans.goal))
+    return humans.replace(goal=jnp.where(who[:, None], choose(candidates, margin), humans.goal))
+
+
+def reassign_goals(
+    key,
+    humans: Humans,
+    robot: Robot,
+    params: EnvParams,
+    who,
+    tries: int,
+    table: ScenarioTable,
+    index,
+    layout: Obstacles,
+) -> Humans:
+    """New goals, drawn by the scenario as a goal change draws them, for the humans `who` (N,) bool (a human that
+    stays stuck). In a vmapped batch only the environments with such a human do the work (see `cond_gathered`)."""
+
+    def redraw(key, humans, robot, params, index, layout, who):
+        return _new_goals(key, humans, robot, params, index, layout, who, tries, table)
+
+    def keep(key, humans, robot, params, index, layout, who):
+        return humans
+
+    index = jnp.asarray(index, jnp.int32)
+    return cond_gathered(jnp.any(who), redraw, keep, key, humans, robot, params, index, layout, who)
 
 
 def respawn_arrived(

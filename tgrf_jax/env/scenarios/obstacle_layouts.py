@@ -1,8 +1,8 @@
 """The obstacle scenarios: an episode's static obstacles (its layout) and the crowd samplers that read them.
 
-Humans have no planner beyond ORCA's local avoidance (as in RVO2), so each obstacle scenario draws human starts
-and goals whose straight path stays clear of the walls: along a corridor, through a door's gap, down one arm of
-an intersection. The robot gets no such help: its goal may lie behind a wall's end or a door. A layout fills the
+Humans route around the obstacles (`tgrf_jax.env.routing`), so a goal behind a wall is reachable; the scenarios
+still draw the flows that make each layout what it is: along a corridor, through a door's gap, down one arm of
+an intersection. A layout fills the
 scenario obstacle slots (`config.SCENARIO_OBSTACLE_SLOTS` of up to `config.SCENARIO_OBSTACLE_VERTICES`
 vertices); the geometry of obstacles (distances, LiDAR) is `tgrf_jax.env.obstacles`.
 """
@@ -46,7 +46,8 @@ def _segment(x0, y0, x1, y1):
 
 
 # corridor: two walls at x = -w and x = +w along the robot's way (a corridor 2.5 to 4 m wide, w drawn per
-# episode); humans walk it both ways in lanes clear of the walls.
+# episode); humans walk it both ways in lanes clear of the walls, each keeping to its right-hand half (two
+# streams that share the whole width meet head-on and, among ORCA humans, jam for good: people form lanes).
 def _corridor_layout(key, params, robot, tries):
     w = uniform(key, (), 1.25, 2.0)
     r = params.circle_radius
@@ -58,32 +59,47 @@ def _corridor_lane(layout):
     return jnp.maximum(layout.vertices[1, 0, 0] - _WALL_CLEARANCE, 0.1)
 
 
+def _keep_right(points, direction):
+    """Points (..., 2) moved into the right-hand half of the corridor for walking along y in `direction`."""
+    return jnp.stack([direction * jnp.abs(points[..., 0]), points[..., 1]], -1)
+
+
 def _corridor_spawn(key, params, layout, n, tries):
     k_pos, k_goal = jax.random.split(key)
     c, r = _corridor_lane(layout), params.circle_radius
     direction = jnp.where(jnp.arange(n) % 2 == 0, 1.0, -1.0)[:, None]
-    return box(k_pos, (n, tries), -c, c, -r, r), stream_goal(k_goal, params, direction, (n, tries), c)
+    start = _keep_right(box(k_pos, (n, tries), -c, c, -r, r), direction)
+    return start, _keep_right(stream_goal(k_goal, params, direction, (n, tries), c), direction)
 
 
 def _corridor_new_goal(key, params, layout, humans, tries):
     direction = jnp.sign(humans.goal[:, 1:2])
-    return stream_goal(key, params, direction, (humans.pos.shape[0], tries), _corridor_lane(layout))
+    goal = stream_goal(key, params, direction, (humans.pos.shape[0], tries), _corridor_lane(layout))
+    return _keep_right(goal, direction)
 
 
 def _corridor_respawn(key, params, layout, pos, goal, tries):
     k_pos, k_goal = jax.random.split(key)
     direction, c = jnp.sign(goal[1]), _corridor_lane(layout)
-    return (stream_goal(k_pos, params, -direction, (tries,), c), stream_goal(k_goal, params, direction, (tries,), c))
+    start = stream_goal(k_pos, params, -direction, (tries,), c)
+    return _keep_right(start, direction), _keep_right(stream_goal(k_goal, params, direction, (tries,), c), direction)
 
 
 CORRIDOR = Scenario(lane_robot, _corridor_spawn, _corridor_new_goal, _corridor_respawn, layout=_corridor_layout)
 
 
-# doorway: a wall across the robot's way at y = y_d in [-1, 1] with one gap 1.2 to 2 m wide centred at x_d in
-# [-1, 1]; humans cross it both ways through the gap, on straight lines through a point of the gap.
+# doorway: a wall across the robot's way at y = y_d in [-1, 1] with one gap 1.6 to 2.4 m wide (the largest ORCA
+# human, 1.32 m across with its safety space, fits through) centred at x_d in [-1, 1]. A third of the humans pass
+# the door, all the same way, towards the robot's start (people leaving a room while the robot enters it); the
+# others walk about on either side of the wall. Two-way traffic through a gap that fits one person at a time jams
+# for good among ORCA humans (they have no convention to yield), so the flow is one-way, as at a marked exit.
+_DOOR_FLOW = -1.0  # the crossing humans' direction along y: from the robot's goal side to its start side
+_CROSSING_SHARE = 1.0 / 3.0
+
+
 def _doorway_layout(key, params, robot, tries):
     u = uniform(key, (3,))
-    y, x, half = 2.0 * u[0] - 1.0, 2.0 * u[1] - 1.0, 0.6 + 0.4 * u[2]
+    y, x, half = 2.0 * u[0] - 1.0, 2.0 * u[1] - 1.0, 0.8 + 0.4 * u[2]
     r = params.circle_radius + 2.0
     return slots(_segment(-r, y, x - half, y), _segment(x + half, y, r, y))
 
@@ -108,21 +124,45 @@ def _through_door(key, layout, shape, side):
     return point - dist[..., :1] * direction, point + dist[..., 1:] * direction
 
 
+def _beside_door(key, params, layout, shape, side):
+    """A point 2.5 to 6.5 m from the wall on its `side` (+1: above), within the arena sideways: far enough that
+    people walking about do not brush past the door, where the crossing stream would press them into it."""
+    k_x, k_y = jax.random.split(key)
+    a = params.arena_size
+    x = uniform(k_x, shape, -a, a)
+    y = _door(layout)[0][1] + side * uniform(k_y, shape, 2.5, 6.5)
+    return jnp.stack([x, y], -1)
+
+
+def _doorway_pair(key, params, layout, shape, crossing, side):
+    """Start and goal of a crossing human (through the door along the flow) or of one walking on `side`."""
+    k_cross, k_start, k_goal = jax.random.split(key, 3)
+    cross_start, cross_goal = _through_door(k_cross, layout, shape, _DOOR_FLOW)
+    start = jnp.where(crossing[..., None], cross_start, _beside_door(k_start, params, layout, shape, side))
+    goal = jnp.where(crossing[..., None], cross_goal, _beside_door(k_goal, params, layout, shape, side))
+    return start, goal
+
+
 def _doorway_spawn(key, params, layout, n, tries):
-    side = jnp.where(jnp.arange(n) % 2 == 0, 1.0, -1.0)[:, None]
-    return _through_door(key, layout, (n, tries), side)
+    i = jnp.arange(n)[:, None]
+    crossing = jnp.broadcast_to(i % 3 == 0, (n, tries))
+    side = jnp.where(i % 2 == 0, 1.0, -1.0) * jnp.ones((n, tries))
+    return _doorway_pair(key, params, layout, (n, tries), crossing, side)
 
 
 def _doorway_new_goal(key, params, layout, humans, tries):
-    # back through the door from the side the human is on now
-    side = jnp.where(humans.pos[:, 1:2] < _door(layout)[0][1], 1.0, -1.0)
-    return _through_door(key, layout, (humans.pos.shape[0], tries), side)[1]
+    # on the side of the current goal: a human on its way through the door keeps going, one beside it stays
+    n = humans.pos.shape[0]
+    side = jnp.where(humans.goal[:, 1:2] > _door(layout)[0][1], 1.0, -1.0) * jnp.ones((n, tries))
+    return _beside_door(key, params, layout, (n, tries), side)
 
 
 def _doorway_respawn(key, params, layout, pos, goal, tries):
-    k_side, k_pair = jax.random.split(key)
-    side = jnp.where(uniform(k_side, ()) < 0.5, 1.0, -1.0)
-    return _through_door(k_pair, layout, (tries,), side)
+    k_kind, k_pair = jax.random.split(key)
+    u = uniform(k_kind, (2,))
+    crossing = jnp.broadcast_to(u[0] < _CROSSING_SHARE, (tries,))
+    side = jnp.where(u[1] < 0.5, 1.0, -1.0) * jnp.ones((tries,))
+    return _doorway_pair(k_pair, params, layout, (tries,), crossing, side)
 
 
 DOORWAY = Scenario(lane_robot, _doorway_spawn, _doorway_new_goal, _doorway_respawn, layout=_doorway_layout)
@@ -143,11 +183,14 @@ def _intersection_lane(layout):
 
 
 def _arm_pair(key, params, layout, shape, across, direction):
-    """Start and goal at the two ends of a corridor (`across`: the cross corridor along x), in its lane."""
+    """Start and goal at the two ends of a corridor (`across`: the cross corridor along x), in its right-hand
+    lane (two-way traffic over the whole width jams, as in the corridor)."""
     k_s, k_g = jax.random.split(key)
     c = _intersection_lane(layout)
-    start = stream_goal(k_s, params, -direction, shape, c)
-    goal = stream_goal(k_g, params, direction, shape, c)
+    # keeping right: +x along the cross corridor has its right-hand side at -y, after the swap below
+    right = jnp.where(across, -direction, direction)
+    start = _keep_right(stream_goal(k_s, params, -direction, shape, c), right)
+    goal = _keep_right(stream_goal(k_g, params, direction, shape, c), right)
     swap = lambda p: jnp.where(across[..., None], p[..., ::-1], p)  # noqa: E731  (x, y) -> (y, x)
     return swap(start), swap(goal)
 
