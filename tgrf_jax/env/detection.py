@@ -46,7 +46,7 @@ def capped_poisson(key, mean, cap: int):
     # log pmf(j) = -mean + sum_{i<=j} log(mean / i); a zero mean gives -inf terms and pmf (1, 0, 0, ...)
     log_pmf = -mean + jnp.concatenate([jnp.zeros(1), jnp.cumsum(jnp.log(mean / j))])
     cdf = jnp.cumsum(jnp.exp(log_pmf))
-    return jnp.sum(jax.random.uniform(key) >= cdf, dtype=jnp.int32)
+    return jnp.minimum(jnp.sum(jax.random.uniform(key) >= cdf, dtype=jnp.int32), cap)
 
 
 def perceive(
