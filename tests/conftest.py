@@ -66,6 +66,7 @@ LONGEST_FIRST = (
     "test_lidar_policies.py",
     "test_orca_obstacles.py",
     "test_env.py",
+    "test_sensing_noise.py",
     "test_orca.py",
     "test_notebooks.py",
     "test_shards.py",

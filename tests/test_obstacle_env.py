@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tgrf_jax.config import OBSTACLE_SCENARIOS, ConfigError, EnvConfig
-from tgrf_jax.env import OBSTACLE_COLLISION, CrowdNavEnv
+from tgrf_jax.env import OBSTACLE_COLLISION, CrowdNavEnv, sensing
 from tgrf_jax.env import obstacles as obstacles_lib
 
 # Social Force humans keep these tests independent of the ORCA solver's obstacle lines (tested on their own).
@@ -105,7 +105,7 @@ def test_occlusion_hides_a_human_behind_a_wall():
         )
         state = hand_state(robot_pos=[0.0, 0.0], robot_goal=[0.0, 5.0], human_pos=[[0.0, 2.5]])
         state = state.replace(obstacles=obstacles_lib.from_polygons([[[-2.0, 1.0], [2.0, 1.0]]]))
-        obs = env._observe(state, env.default_params, None, env.visible(state, env.default_params))
+        obs = sensing.observe(state, env.default_params, None, env.visible(state, env.default_params))
         assert int(obs.human_mask.sum()) == seen
 
 

@@ -19,7 +19,7 @@ import yaml
 
 from tgrf_jax import reward as reward_lib
 from tgrf_jax import scenario_registry as registry
-from tgrf_jax.env_rules import check_env_relations, check_scenario_weights, scenario_list
+from tgrf_jax.env_rules import check_detection_latency, check_env_relations, check_scenario_weights, scenario_list
 from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
     ConfigError,
     _coerce,
@@ -150,6 +150,10 @@ MAX_NAME_LENGTH = 200  # with room for a sweep's run suffix within a file name's
 _NAME = re.compile(r"[A-Za-z0-9_.=+-]+")
 # Episodes of one evaluation: their per-episode statistics stay on the host (about 40 bytes each).
 MAX_EPISODES = 10_000_000
+# Sensing errors: the delay buffer holds this many past detection frames at most (every one a copy of the humans'
+# positions, velocities and predictions in the episode state), and a detection off by more than 10 m is no detection.
+MAX_DETECTION_LATENCY = 20
+MAX_DETECTION_NOISE = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -278,8 +282,51 @@ class EnvConfig:
     unicycle_dv_max: float = traced(0.087, low=0.0)
     unicycle_dtheta_max: float = traced(0.06, low=0.0)
 
+    # --- sensing errors (docs/sensing.md): the observation only; rewards and metrics read the true state ------
+    max_detection_latency: int = spec(
+        0,
+        low=0,
+        high=MAX_DETECTION_LATENCY,
+        doc="static: steps of detection delay the episode state can hold, the bound of env.detection_latency "
+        "(0: no delay buffer)",
+    )
+    randomise_sensing: bool = spec(
+        False,
+        doc="static: each episode draws its own sensor errors, each uniformly between perfect sensing and the "
+        "configured value (noise, dropout, false detections and latency from 0, the field of view from 360 degrees)",
+    )
+    detection_noise: float = traced(
+        0.0,
+        low=0.0,
+        high=MAX_DETECTION_NOISE,
+        doc="standard deviation of the Gaussian error of each detected position (m) and velocity (m/s) component",
+    )
+    detection_dropout: float = traced(
+        0.0, low=0.0, high=1.0, doc="probability that a person the sensor could see is missed on a step"
+    )
+    false_detections: float = traced(
+        0.0,
+        low=0.0,
+        high=MAX_HUMANS,
+        doc="mean number of phantom people detected per step within range (Poisson), filling free human slots",
+    )
+    detection_latency: int = traced(
+        0,
+        low=0,
+        high=MAX_DETECTION_LATENCY,
+        doc="steps by which detections are late (whole steps, at most env.max_detection_latency)",
+    )
+    sensor_fov: float = traced(
+        360.0,
+        low=0.0,
+        high=360.0,
+        low_inclusive=False,
+        doc="degrees of the people sensor's field of view, centred on the robot's heading (a holonomic robot's "
+        "stays pi/2)",
+    )
+
     def __post_init__(self):
-        for name in ("active_humans_min", "active_humans_max"):
+        for name in ("active_humans_min", "active_humans_max", "detection_latency"):
             value = getattr(self, name)
             if value is not None:
                 value = _coerce(value, 0, f"env.{name}")  # a count: whole numbers only
@@ -327,6 +374,7 @@ class EnvConfig:
         check_fields(self, "env")
         check_scenario_weights(self.resolved("scenario_weights"), self.drawn_scenarios)
         check_env_relations({n: self.resolved(n) for n in traced_names(EnvConfig)})
+        check_detection_latency(self.detection_latency, self.max_detection_latency)
         hi = self.resolved("active_humans_max")
         if hi > self.num_humans:
             raise ConfigError(

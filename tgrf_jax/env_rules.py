@@ -1,7 +1,7 @@
 """Rules between environment fields that no single field's declared range can state: the ordered pairs of bounds,
-an arena that can hold the start-goal distance, a time limit of at least one step, the mix's scenario list and its
-weights. `tgrf_jax.config.EnvConfig` checks a config with them, `tgrf_jax.env.types.EnvParams.validate` concrete
-parameters (batched ones element by element).
+an arena that can hold the start-goal distance, a time limit of at least one step, a detection latency of whole
+steps within the delay buffer, the mix's scenario list and its weights. `tgrf_jax.config.EnvConfig` checks a
+config with them, `tgrf_jax.env.types.EnvParams.validate` concrete parameters (batched ones element by element).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 from tgrf_jax import scenario_registry as registry
 from tgrf_jax.fields import ConfigError, _show, first_where
 
-__all__ = ["check_env_relations", "check_scenario_weights", "scenario_list"]
+__all__ = ["check_detection_latency", "check_env_relations", "check_scenario_weights", "scenario_list"]
 
 _F32 = np.finfo(np.float32)
 
@@ -61,6 +61,20 @@ def check_env_relations(values: Mapping[str, Any]) -> None:
     hit = first_where(np.asarray(values["time_limit"]) < np.asarray(values["dt"]), values["time_limit"], values["dt"])
     if hit:
         raise ConfigError(f"env.time_limit = {hit[0]!s} must be >= env.dt = {hit[1]!s}")
+    latency = np.asarray(values["detection_latency"])
+    hit = first_where(latency != np.round(latency), latency)
+    if hit:
+        raise ConfigError(f"env.detection_latency = {hit[0]!s} must be a whole number of steps")
+
+
+def check_detection_latency(latency, capacity: int) -> None:
+    """env.detection_latency (every element of a batch) within the delay buffer's static capacity."""
+    hit = first_where(np.asarray(latency) > capacity, latency)
+    if hit:
+        raise ConfigError(
+            f"env.detection_latency = {hit[0]!s} must be <= env.max_detection_latency = {capacity} (the delay "
+            "buffer's capacity, static: raise it to delay detections further)"
+        )
 
 
 def check_scenario_weights(weights, drawn_scenarios=None) -> None:

@@ -107,7 +107,7 @@ def _spaces(env: CrowdNavEnv, params):
 
 def _make_env(config, reward, params):
     env = config if isinstance(config, CrowdNavEnv) else CrowdNavEnv(config, reward)
-    params = (env.default_params if params is None else params).validate()
+    params = (env.default_params if params is None else params).validate(env.config)
     return env, params
 
 

@@ -17,9 +17,9 @@ import jax.numpy as jnp
 
 from tgrf_jax import reward as reward_lib
 from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
+from tgrf_jax.env import detection, orca, prediction, routing, scenarios, sensing, stuck
 from tgrf_jax.env import humans as humans_lib
 from tgrf_jax.env import obstacles as obstacles_lib
-from tgrf_jax.env import orca, prediction, routing, scenarios, sensing, stuck
 from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.gst import history as gst_history
 from tgrf_jax.env.gst import weights as gst_weights
@@ -252,6 +252,9 @@ class CrowdNavEnv:
             obstacle_table=self._obstacle_table(layout),
             routing=self._plan_routes(layout, humans, params),
         )
+        if self.config.randomise_sensing:
+            errors = detection.draw_errors(jax.random.fold_in(key, 5), params, self.config.max_detection_latency)
+            state = state.replace(sensor_errors=errors)
         visible = self.visible(state, params)
         if self.config.predictor == "gst":
             state = state.replace(history=gst_history.fresh(robot.pos, humans.pos, visible))
@@ -260,7 +263,10 @@ class CrowdNavEnv:
             predictions = gst_history.fresh_predictions(state.history)
         else:
             predictions, _ = self._predict(state, params, visible)
-        return self._observe(state, params, predictions, visible), state
+        frame = self._perceive(jax.random.fold_in(key, 6), state, params, predictions, visible)
+        if self.config.max_detection_latency > 0:
+            state = state.replace(detections=detection.fill_buffer(frame, self.config.max_detection_latency))
+        return self._observe(state, params, frame), state
 
     def _layout(self, key, params: EnvParams, robot: Robot, index) -> tuple[Obstacles, jnp.ndarray]:
         """The episode's obstacles: the scenario's slots, then the fixed `env.obstacles`; a slot that would hold the
@@ -332,13 +338,44 @@ class CrowdNavEnv:
         return humans, stuck.restart(progress, stale, step_count), jnp.sum(stale, dtype=jnp.int32)
 
     def visible(self, state: EnvState, params: EnvParams):
-        """Humans the robot perceives: within sensor range and, with env.occlusion, in its line of sight."""
+        """Humans the robot could perceive: within sensor range and field of view and, with env.occlusion, in its
+        line of sight (before the sensor's random errors: `_perceive`)."""
+        fov = self.sensor_errors(state, params).fov
         visible = sensing.visible_mask(state, params)
+        visible = visible & sensing.in_field_of_view(state.robot.pos, state.robot.heading, state.humans.pos, fov)
         if self.config.occlusion and self.config.obstacle_slots > 0:
             visible = visible & obstacles_lib.line_of_sight(state.robot.pos, state.humans.pos, state.obstacles)
         return visible
 
-    def _observe(self, state: EnvState, params: EnvParams, predictions, visible) -> Obs:
+    def sensor_errors(self, state: EnvState, params: EnvParams):
+        """The episode's `SensorErrors`: drawn at reset with env.randomise_sensing, else (or for a state built
+        without them) the params'."""
+        if state.sensor_errors is not None:
+            return state.sensor_errors
+        return detection.configured_errors(params, self.config.max_detection_latency)
+
+    def _perceive(self, key, state: EnvState, params: EnvParams, predictions, visible):
+        """This step's detection frame (`detection.perceive`) from the true state and predictions."""
+        errors = self.sensor_errors(state, params)
+        return detection.perceive(
+            key, state.robot, state.humans, visible, predictions, params, errors, self.config.predictor
+        )
+
+    def _delay(self, state: EnvState, params: EnvParams, frame):
+        """(the frame the robot sees now, the state with `frame` in its delay buffer): without a buffer, `frame`."""
+        capacity = self.config.max_detection_latency
+        if capacity == 0:
+            return frame, state
+        if state.detections is None:
+            raise ValueError(
+                f"env.max_detection_latency = {capacity} needs the delay buffer in EnvState.detections, but this "
+                "state has none: start episodes with env.reset (or set it to detection.fill_buffer(frame, capacity))"
+            )
+        late, buffer = detection.delay(state.detections, frame, self.sensor_errors(state, params).latency)
+        return late, state.replace(detections=buffer)
+
+    def _observe(self, state: EnvState, params: EnvParams, frame) -> Obs:
+        """The observation of detection `frame` (`_perceive`, or `sensing.exact_detections`) from `state`'s robot."""
         cfg = self.config
         if cfg.lidar_rays > 0:
             h = state.humans
@@ -354,13 +391,14 @@ class CrowdNavEnv:
             )
         else:
             lidar = jnp.zeros((0,), jnp.float32)
-        return sensing.observe(state, params, predictions, visible, lidar)
+        return sensing.observe_detections(state, params, frame, lidar)
 
     def step_env(self, key, state: EnvState, action, params: EnvParams):
         """One step without auto-reset: (obs, state, reward, terminated, truncated, info)."""
         chex.assert_shape(action, (self.action_size,))
         cfg = self.config
         k_goal, k_respawn = jax.random.split(key)
+        k_sense = jax.random.fold_in(key, 7)  # folded, so the split above draws what it drew before sensing errors
         robot0, humans0 = state.robot, state.humans
 
         robot, delta_heading = move_robot(robot0, action, params, cfg.kinematics)
@@ -455,7 +493,10 @@ class CrowdNavEnv:
         future_hit, future_dist = self._future_intrusion(next_state, visible, predictions, params)
         future_hit = future_hit & ~(terminated | truncated)
         future_dist = jnp.where(future_hit, future_dist, jnp.inf)
-        obs = self._observe(next_state, params, predictions, visible)
+        frame, next_state = self._delay(
+            next_state, params, self._perceive(k_sense, next_state, params, predictions, visible)
+        )
+        obs = self._observe(next_state, params, frame)
         info = Info(
             outcome=outcome,
             time=step_count.astype(jnp.float32) * params.dt,

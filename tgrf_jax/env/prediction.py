@@ -32,9 +32,14 @@ def predict(
     if config.predictor == "none":
         return None
     if config.predictor == "const_vel":
-        steps = jnp.arange(1, k + 1, dtype=jnp.float32)[None, :, None] * params.dt
-        return humans.pos[:, None, :] + steps * humans.vel[:, None, :]
+        return constant_velocity(humans.pos, humans.vel, params.dt, k)
     return true_future(humans, params, config, k, neighbor_dist, obstacles, obstacle_table, routing)
+
+
+def constant_velocity(pos, vel, dt, k: int):
+    """Positions (N, k, 2) at t+1..t+k of people keeping velocities `vel` (N, 2) from `pos` (N, 2)."""
+    steps = jnp.arange(1, k + 1, dtype=jnp.float32)[None, :, None] * dt
+    return pos[:, None, :] + steps * vel[:, None, :]
 
 
 def true_future(

@@ -1,11 +1,11 @@
-"""What the robot perceives: visibility, distance sorting and the observation pytree."""
+"""What the robot perceives: visibility (range, field of view), distance sorting and the observation pytree."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
 from tgrf_jax.env.geometry import norm
-from tgrf_jax.env.types import EnvParams, EnvState, Obs
+from tgrf_jax.env.types import Detections, EnvParams, EnvState, Obs
 
 
 def edge_distances(robot_pos, human_pos, robot_radius, human_radius):
@@ -33,18 +33,35 @@ def sort_order(keys):
     return jnp.sum(jnp.where(position[None, :] == idx[:, None], idx[None, :], 0), axis=-1, dtype=jnp.int32)
 
 
+def in_field_of_view(robot_pos, heading, human_pos, fov_degrees):
+    """People whose centre lies within +-fov/2 of the robot's heading (N,) bool; a 360-degree sensor sees all."""
+    rel = human_pos - robot_pos
+    ahead = jnp.cos(heading) * rel[:, 0] + jnp.sin(heading) * rel[:, 1]
+    return (fov_degrees >= 360.0) | (ahead >= norm(rel) * jnp.cos(jnp.deg2rad(fov_degrees) / 2.0))
+
+
+def exact_detections(humans, visible, predictions) -> Detections:
+    """What a perfect sensor reports: the visible humans' true positions, velocities, radii and `predictions`."""
+    return Detections(pos=humans.pos, vel=humans.vel, radius=humans.radius, seen=visible, pred=predictions)
+
+
 def observe(state: EnvState, params: EnvParams, predictions, visible, lidar=None) -> Obs:
-    """Build the observation; `predictions` are world positions (N, K, 2) or None, `lidar` the scan (R,) (None:
-    no LiDAR)."""
-    robot, humans = state.robot, state.humans
-    rel = humans.pos - robot.pos
+    """The observation of a perfect sensor; `predictions` are world positions (N, K, 2) or None, `lidar` the scan
+    (R,) (None: no LiDAR)."""
+    return observe_detections(state, params, exact_detections(state.humans, visible, predictions), lidar)
+
+
+def observe_detections(state: EnvState, params: EnvParams, frame: Detections, lidar=None) -> Obs:
+    """The observation of a detection `frame`, relative to the robot's current position (the frame may be late)."""
+    robot = state.robot
+    rel = frame.pos - robot.pos
     features = [rel]
-    if predictions is not None:
-        features.append((predictions - robot.pos).reshape(rel.shape[0], -1))
+    if frame.pred is not None:
+        features.append((frame.pred - robot.pos).reshape(rel.shape[0], -1))
     features = jnp.concatenate(features, axis=-1)
 
-    order = sort_order(jnp.where(visible, norm(rel), jnp.inf))
-    mask = visible[order]
+    order = sort_order(jnp.where(frame.seen, norm(rel), jnp.inf))
+    mask = frame.seen[order]
     robot_node = jnp.concatenate(
         [robot.pos, params.robot_radius[None], robot.goal, params.robot_v_max[None], robot.heading[None]]
     )
@@ -53,8 +70,8 @@ def observe(state: EnvState, params: EnvParams, predictions, visible, lidar=None
         robot_vel=robot.vel,
         humans=jnp.where(mask[:, None], features[order], 0.0),
         human_mask=mask,
-        human_vel=jnp.where(mask[:, None], humans.vel[order], 0.0),
-        human_radius=jnp.where(mask, humans.radius[order], 0.0),
+        human_vel=jnp.where(mask[:, None], frame.vel[order], 0.0),
+        human_radius=jnp.where(mask, frame.radius[order], 0.0),
         lidar=jnp.zeros((0,), jnp.float32) if lidar is None else lidar,
         obstacles=state.obstacles,
     )

@@ -9,7 +9,7 @@ from flax import struct
 
 from tgrf_jax.config import EnvConfig, RewardConfig
 from tgrf_jax.env.obstacles import Obstacles
-from tgrf_jax.env_rules import check_env_relations, check_scenario_weights
+from tgrf_jax.env_rules import check_detection_latency, check_env_relations, check_scenario_weights
 from tgrf_jax.fields import check_traced, concrete, traced_names, traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
@@ -32,14 +32,19 @@ class _EnvParamsMethods:
     def from_config(cls, config: EnvConfig, reward: RewardParams) -> EnvParams:
         return cls(**traced_values(config), reward=reward)
 
-    def validate(self) -> EnvParams:
+    def validate(self, config: EnvConfig | None = None) -> EnvParams:
         """Check the concrete values (on the host; batched params element by element) against the ranges and
-        relations declared in `EnvConfig` and `RewardConfig`, as a config is checked. Raises ConfigError (a
-        ValueError) naming the field and what is allowed; returns the params."""
+        relations declared in `EnvConfig` and `RewardConfig`, as a config is checked, and with the env's `config`
+        against its static capacities too. Raises ConfigError (a ValueError) naming the field and what is allowed;
+        returns the params."""
         # the weights first: their rule is more than a range (check_traced would only say they must be finite)
         check_scenario_weights(concrete(self.scenario_weights, "env.scenario_weights"))
         check_traced(self, EnvConfig, "env")
         check_env_relations({n: concrete(getattr(self, n), f"env.{n}") for n in traced_names(EnvConfig)})
+        if config is not None:
+            check_detection_latency(
+                concrete(self.detection_latency, "env.detection_latency"), config.max_detection_latency
+            )
         check_traced(self.reward, RewardConfig, "reward")
         return self
 
@@ -100,6 +105,33 @@ class EnvState:
     obstacle_table: Any = None
     # the humans' routing among the obstacles (tgrf_jax.env.routing.Routing), None without obstacle slots
     routing: Any = None
+    # sensing (tgrf_jax.env.detection): the episode's `SensorErrors` with env.randomise_sensing, else None (then
+    # the params' values hold); the last env.max_detection_latency `Detections` frames, newest first, else None
+    sensor_errors: Any = None
+    detections: Any = None
+
+
+@struct.dataclass
+class SensorErrors:
+    """How the people sensor errs in an episode: the env's params, or with env.randomise_sensing a draw per episode."""
+
+    noise: jnp.ndarray  # () std of each position (m) and velocity (m/s) component
+    dropout: jnp.ndarray  # () probability that a visible person is missed on a step
+    false_rate: jnp.ndarray  # () mean phantom detections per step
+    latency: jnp.ndarray  # () int32 steps by which detections are late
+    fov: jnp.ndarray  # () degrees, centred on the robot's heading
+
+
+@struct.dataclass
+class Detections:
+    """One frame of what the people sensor reports, in human-slot order, world frame: a slot holds a detected
+    person (true identity, perceived position and velocity), a phantom, or nothing (`seen` false)."""
+
+    pos: jnp.ndarray  # (N, 2)
+    vel: jnp.ndarray  # (N, 2)
+    radius: jnp.ndarray  # (N,)
+    seen: jnp.ndarray  # (N,) bool
+    pred: Any = None  # (N, K, 2) predicted world positions, or None without predictions
 
 
 @struct.dataclass

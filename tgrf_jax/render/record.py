@@ -223,7 +223,7 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
 
     if int(n_episodes) < 1:
         raise ValueError(f"n_episodes = {n_episodes} must be >= 1")
-    params = (env.default_params if params is None else params).validate()
+    params = (env.default_params if params is None else params).validate(env.config)
     n_steps = episode_steps(params)
     first, outs = jax.device_get(_record_jit()(env, policy, key, int(n_episodes), params, n_steps))
     label = label or getattr(policy, "name", None) or type(policy).__name__

@@ -242,7 +242,7 @@ def _run_inputs(runs):
                 f"{runs[0].name}'s; it cannot share the compiled program"
             )
     hparams = _stack(hps)
-    check_hparams(hparams)  # each run's concrete values, as tgrf-train's init checks them
+    check_hparams(hparams, runs[0].config.env)  # each run's concrete values, as tgrf-train's init checks them
     return hparams, _stack([jax.random.PRNGKey(r.config.run.seed) for r in runs])
 
 

@@ -36,7 +36,7 @@ from flax import struct
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from tgrf_jax.config import PPOConfig, TrainConfig
+from tgrf_jax.config import EnvConfig, PPOConfig, TrainConfig
 from tgrf_jax.env import (
     COLLISION,
     OBSTACLE_COLLISION,
@@ -568,7 +568,7 @@ class Trainer:
 
         def init(key, hparams: HParams | None = None) -> TrainState:
             if hparams is not None:
-                check_hparams(hparams)
+                check_hparams(hparams, self.config.env)
             return jitted(key, hparams)
 
         return init
@@ -592,11 +592,12 @@ class Trainer:
         return self.across_shards(lambda ts: self._scan_updates(ts, self.num_updates))(ts)
 
 
-def check_hparams(hparams: HParams) -> None:
+def check_hparams(hparams: HParams, env_config: EnvConfig | None = None) -> None:
     """Concrete `HParams` (batched or not) against the declarations of `PPOConfig`, `EnvConfig` and
-    `RewardConfig`; raises ConfigError naming the field and the allowed range."""
+    `RewardConfig`, and with the env's config against its static capacities; raises ConfigError naming the field
+    and the allowed range."""
     check_traced(hparams, PPOConfig, "ppo")
-    hparams.env.validate()
+    hparams.env.validate(env_config)
 
 
 def make_trainer(config: TrainConfig, devices="auto") -> Trainer:
