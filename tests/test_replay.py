@@ -207,6 +207,11 @@ def test_bad_replay_configs(tmp_path, recording):
     )
     assert TrainConfig.from_dict(__import__("yaml").safe_load(config.to_yaml())) == config
     assert "replay" not in EnvConfig(scenario="mix").drawn_scenarios  # the default mix needs no recordings
+    # params stepping another dt would play the recordings (resampled onto the config's) at the wrong speed
+    env = replay_env(recording)
+    with pytest.raises(ConfigError, match="env.dt = 0.1 must equal the config's env.dt = 0.25"):
+        env.default_params.replace(dt=jnp.float32(0.1)).validate(env.config)
+    env.default_params.validate(env.config)
 
 
 def test_truth_predicts_the_recorded_future(recording):

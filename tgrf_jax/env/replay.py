@@ -140,13 +140,21 @@ def assign_columns(mask: np.ndarray) -> tuple[np.ndarray, int]:
     return columns, len(ends)
 
 
-def _load_scenes(files, dt: float):
+def _stat(name: str, spec: RecordingSpec) -> tuple:
+    """What the cache of packed recordings is keyed on for one file: its spec, size and modification time (an
+    edited file is read again)."""
+    try:
+        info = pathlib.Path(spec.path).stat()
+    except OSError:
+        hint = " (fetch the catalogue's recordings with `tgrf-data fetch eth-ucy`)"
+        known = str(spec.path).startswith(str(default_data_dir()))
+        raise ConfigError(f"{name}: {spec.path}: no such file{hint if known else ''}") from None
+    return name, spec, info.st_size, info.st_mtime_ns
+
+
+def _load_scenes(files: tuple, dt: float):
     scenes = []
-    for name, spec in resolve(files):
-        if not pathlib.Path(spec.path).exists():
-            hint = " (fetch the catalogue's recordings with `tgrf-data fetch eth-ucy`)"
-            known = str(spec.path).startswith(str(default_data_dir()))
-            raise ConfigError(f"{name}: {spec.path}: no such file{hint if known else ''}")
+    for name, spec, _, _ in files:
         try:
             scene = load(spec, dt=dt)
         except RecordingError as e:
@@ -197,10 +205,12 @@ def _packed(files: tuple, dt: float, num_humans: int, overflow: str) -> ReplayDa
 
 
 def load_data(config: EnvConfig) -> ReplayData:
-    """The env's recordings, read and packed once per (files, dt, capacity, overflow); raises ConfigError naming
+    """The env's recordings, read and packed once per (files and their versions on disk, dt, capacity, overflow:
+    envs of one config share them); raises ConfigError naming
     the entry of env.replay_files and the file for a missing or malformed file and for a crowd that does not fit
     the human slots."""
-    return _packed(config.replay_files, float(config.dt), config.num_humans, config.replay_overflow)
+    files = tuple(_stat(name, spec) for name, spec in resolve(config.replay_files))
+    return _packed(files, float(config.dt), config.num_humans, config.replay_overflow)
 
 
 # ---------------------------------------------------------------------------------------------- compiled side

@@ -11,7 +11,7 @@ from flax import struct
 from tgrf_jax.config import EnvConfig, RewardConfig
 from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.env_rules import check_detection_latency, check_env_relations, check_scenario_weights
-from tgrf_jax.fields import ConfigError, _show, check_traced, concrete, traced_names, traced_pytree, traced_values
+from tgrf_jax.fields import ConfigError, check_traced, concrete, first_where, traced_names, traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
 # Episode outcome codes carried in `Info.outcome`: COLLISION is with a human, OBSTACLE_COLLISION with a static
@@ -46,11 +46,14 @@ class _EnvParamsMethods:
             check_detection_latency(
                 concrete(self.detection_latency, "env.detection_latency"), config.max_detection_latency
             )
-            if "replay" in config.drawn_scenarios and not np.allclose(concrete(self.dt, "env.dt"), config.dt):
-                raise ConfigError(
-                    f"env.dt = {_show(np.asarray(self.dt).tolist())} must equal the config's env.dt = {config.dt:g} "
-                    "in an env with the replay scenario: the recordings are resampled onto it when the env is built"
-                )
+            if "replay" in config.drawn_scenarios:
+                dt = concrete(self.dt, "env.dt")
+                hit = first_where(~np.isclose(dt, config.dt), dt)
+                if hit:
+                    raise ConfigError(
+                        f"env.dt = {hit[0]!s} must equal the config's env.dt = {config.dt:g} in an env with the "
+                        "replay scenario: the recordings are resampled onto it when the env is built"
+                    )
         check_traced(self.reward, RewardConfig, "reward")
         return self
 
