@@ -317,3 +317,26 @@ def test_envs_without_replay_step_exactly_as_before():
     # people by metres
     for got, key in ((robot, "robot"), (humans, "humans"), (rewards, "reward"), (obs.humans, "obs")):
         np.testing.assert_allclose(np.asarray(got, np.float32), want[key], rtol=1e-4, atol=1e-3, err_msg=key)
+
+
+def test_evaluate_and_render_a_replay_episode(recording):
+    """Metrics and rendering take replay episodes as they are (evaluation plays them without augmentation)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from tgrf_jax import render
+    from tgrf_jax.evaluate import evaluate
+    from tgrf_jax.policies.baselines import OrcaPolicy
+
+    env = replay_env(recording, human_policy="orca", replay_augment=True, time_limit=4.0, predictor="const_vel")
+    result = evaluate(env, OrcaPolicy(), jax.random.PRNGKey(0), 4)
+    assert 0.0 <= result.success_rate <= 1.0
+    (ep,) = render.record_episodes(env, OrcaPolicy(), render.eval_key(0), 1, label="orca")
+    # every slot kept, NaN where empty: drawing and distances skip them, the view holds only the scene
+    assert ep.active.shape == ep.human_pos.shape[:2] and ep.num_humans == 4
+    assert np.isnan(ep.human_pos[~ep.active]).all() and np.isfinite(ep.human_pos[ep.active]).all()
+    assert np.isfinite(ep.dmin()).all()
+    x0, x1, y0, y1 = render.view_limits(ep)
+    assert x1 - x0 < 40
+    for t in (0, ep.steps):
+        assert render.plot_frame(ep, t) is not None
