@@ -50,13 +50,11 @@ class Scenario:
     the obstacle scenarios read the geometry they drew (a corridor's width, a door's place) from it; open-space
     samplers ignore it (`tgrf_jax.env.scenarios.open_space.open_space` adapts a sampler without it).
 
-    How a scenario supplies the humans' paths (the seam for what comes next): a human's path is its destination,
-    `Humans.goal`, which only `spawn`, `new_goal` and `respawn` set, and the point it heads for each step, which
-    today is the goal itself (ORCA or Social Force steer straight at it). Routing around obstacles changes only
-    the second (`tgrf_jax.env.routing.aim`: the farthest visible point of the shortest path to the goal), and a
-    `replay` scenario supplies both from its recordings (`tgrf_jax.pedestrians`). Each lands as an optional field
-    of this record, None meaning today's straight legs, read by `tgrf_jax.env.scenarios.episodes` and the humans'
-    step, so no scenario nor the registry changes (docs/design.md, "Scenarios").
+    How a scenario supplies the humans' paths: a human's path is its destination, `Humans.goal`, which only
+    `spawn`, `new_goal` and `respawn` set, and the point it heads for each step, the goal itself unless a
+    `tgrf_jax.env.humans.Steering` says otherwise: routing around obstacles (`tgrf_jax.env.routing.aim`) and
+    replayed recordings (kind 'replay', `tgrf_jax.env.replay`, which also draw their own episodes) do
+    (docs/design.md, "Scenarios").
     """
 
     robot: Callable[[Any, EnvParams, int], Robot]
