@@ -340,3 +340,25 @@ def test_evaluate_and_render_a_replay_episode(recording):
     assert x1 - x0 < 40
     for t in (0, ep.steps):
         assert render.plot_frame(ep, t) is not None
+
+
+def test_reactive_replay_keeps_out_of_an_obstacle_on_the_recorded_path(recording):
+    """A box on person 1's recorded path: the recording walks through it; ORCA people keep out of it."""
+    from tgrf_jax.env import obstacles as obstacles_lib
+
+    x, y = np.array([3.0, 0.0]) - centre(recording)  # person 1 passes here at frame 30
+    box = [[x - 0.3, y - 0.3], [x + 0.3, y - 0.3], [x + 0.3, y + 0.3], [x - 0.3, y + 0.3]]
+    inside = {}
+    for policy in ("replay", "orca"):
+        env = replay_env(recording, human_policy=policy, obstacles=[box], time_limit=1000.0)
+        _, state = jax.jit(env.reset_env)(jax.random.PRNGKey(0), env.default_params)
+        assert int(state.obstacles_dropped) == 0 and int(state.replay.start) < 25
+        state = state.replace(robot=state.robot.replace(pos=jnp.array([50.0, 50.0]), goal=jnp.array([60.0, 50.0])))
+        room = []
+        for s, *_r in run(env, state, 40):
+            act = np.asarray(s.humans.active)
+            gap = np.asarray(obstacles_lib.clearance(s.humans.pos, s.obstacles)) - np.asarray(s.humans.radius)
+            room.append(gap[act].min(initial=np.inf))
+        inside[policy] = min(room)
+    assert inside["replay"] < -0.2  # through the box
+    assert inside["orca"] > -1e-3  # around it
