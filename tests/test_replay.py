@@ -1,5 +1,6 @@
 """env.scenario: replay: recorded pedestrians (small generated recordings) as the simulator's humans."""
 
+import os
 import pathlib
 
 import jax
@@ -212,6 +213,17 @@ def test_bad_replay_configs(tmp_path, recording):
     with pytest.raises(ConfigError, match="env.dt = 0.1 must equal the config's env.dt = 0.25"):
         env.default_params.replace(dt=jnp.float32(0.1)).validate(env.config)
     env.default_params.validate(env.config)
+
+
+def test_envs_share_recordings_until_a_file_changes(tmp_path):
+    path = write_four_column(tmp_path / "walk.txt", PEOPLE)
+    a, b = replay_env(path), replay_env(path)
+    assert a == b and hash(a) == hash(b) and a.replay is b.replay  # read once, one compiled program
+    rows = [(f, p, x + 1.0, y) for f, p, x, y in PEOPLE]
+    write_four_column(path, rows)
+    os.utime(path, ns=(0, 1))  # a new modification time, however coarse the file system's clock
+    c = replay_env(path)
+    assert c != a and c.replay is not a.replay
 
 
 def test_truth_predicts_the_recorded_future(recording):

@@ -133,15 +133,18 @@ class CrowdNavEnv:
             f"predictor={c.predictor!r}, kinematics={c.kinematics!r}, reward={self.reward_config.scheme!r})"
         )
 
-    # Environments with equal configs are interchangeable, so jit caches keyed on them are shared.
+    # Environments with equal configs are interchangeable, so jit caches keyed on them are shared. Replayed
+    # recordings are constants of the compiled program: envs share them (and a program) only while the files are
+    # unchanged on disk (`replay.load_data` hands equal configs the same arrays until a file changes).
     def __eq__(self, other):
-        return isinstance(other, CrowdNavEnv) and (self.config, self.reward_config) == (
+        return isinstance(other, CrowdNavEnv) and (self.config, self.reward_config, self.replay) == (
             other.config,
             other.reward_config,
+            other.replay,
         )
 
     def __hash__(self):
-        return hash((self.config, self.reward_config))
+        return hash((self.config, self.reward_config, self.replay))
 
     @property
     def default_params(self) -> EnvParams:
