@@ -293,6 +293,7 @@ def test_replay_in_a_mix(recording):
             "num_humans": 4,
             "min_start_goal_dist": 3.0,
             "replay_files": [{"path": str(recording), "seconds_per_frame": SPF}],
+            "replay_augment": False,
             "predictor": "truth",
         }
     )
@@ -301,13 +302,21 @@ def test_replay_in_a_mix(recording):
     _, states = jax.jit(jax.vmap(env.reset_env, in_axes=(0, None)))(keys, params)
     scenario = np.asarray(states.scenario)
     assert set(scenario) == {0, 1}
+    for b in np.flatnonzero(scenario == 1):  # the replay episodes start on their recordings
+        act = np.asarray(states.humans.active[b])
+        assert act.sum() == len(recorded_at(int(states.replay.start[b])))
+        matches(np.asarray(states.humans.pos[b])[act], int(states.replay.start[b]), recording)
     step = jax.jit(jax.vmap(env.step_env, in_axes=(0, 0, 0, None)))
     for i in range(3):
         _, states, reward, *_ = step(keys + i, states, jnp.zeros((16, 2)), params)
     assert np.isfinite(np.asarray(reward)).all()
-    # circle crossing's humans stay active; replay's follow the recording (a subset, where people are in view)
+    # circle crossing's humans stay active; replay's walk on along their recording (reactively, with ORCA)
     assert np.asarray(states.humans.active)[scenario == 0].all()
     assert (np.asarray(states.step_count) == 3).all()
+    for b in np.flatnonzero(scenario == 1):
+        act = np.asarray(states.humans.active[b])
+        assert act.sum() == len(recorded_at(int(states.replay.start[b]) + 3))
+        matches(np.asarray(states.humans.pos[b])[act], int(states.replay.start[b]) + 3, recording, atol=0.5)
 
 
 def test_envs_without_replay_step_exactly_as_before():
