@@ -156,6 +156,57 @@ MAX_DETECTION_LATENCY = 20
 MAX_DETECTION_NOISE = 10.0
 
 
+_REPLAY_KEYS = ("path", "seconds_per_frame", "fps", "format")
+
+
+def replay_file_list(files) -> tuple:
+    """env.replay_files as a hashable tuple: catalogue names as strings, files as tuples of (key, value) pairs in
+    `_REPLAY_KEYS` order (each a valid `RecordingSpec`; the file itself is read when an env is built)."""
+    from tgrf_jax.pedestrians import RecordingError, RecordingSpec
+    from tgrf_jax.pedestrians import catalogue as catalogue_lib
+
+    known = [*catalogue_lib.DATASETS, *catalogue_lib.FOLDS, *(e.name for e in catalogue_lib.ETH_UCY)]
+    if isinstance(files, (str, bytes, Mapping)) or not hasattr(files, "__iter__"):
+        files = [files]  # one entry on its own
+    out = []
+    for i, item in enumerate(files):
+        name = f"env.replay_files[{i}]"
+        if isinstance(item, str):
+            if item not in known:
+                raise ConfigError(
+                    f"{name} = {item!r} is not a catalogue name; allowed: {', '.join(known)}, or a mapping "
+                    "{path, seconds_per_frame or fps, format}"
+                )
+            out.append(item)
+            continue
+        if not isinstance(item, Mapping) and isinstance(item, tuple) and all(len(p) == 2 for p in item):
+            item = dict(item)  # the normalised form, as a config built from a normalised one holds it
+        if not isinstance(item, Mapping):
+            raise ConfigError(f"{name} = {_show(item)} must be a catalogue name or a mapping {{path, ...}}")
+        unknown = [k for k in item if k not in _REPLAY_KEYS]
+        if unknown or "path" not in item:
+            raise ConfigError(
+                f"{name} = {_show(dict(item))}: {'unknown key ' + repr(unknown[0]) if unknown else 'no path'}; "
+                f"allowed keys: {', '.join(_REPLAY_KEYS)} (path and one of seconds_per_frame and fps required)"
+            )
+        values = {k: item.get(k) for k in _REPLAY_KEYS}
+        values["path"] = str(values["path"])
+        for key in ("seconds_per_frame", "fps"):
+            if values[key] is not None and not isinstance(values[key], bool):
+                try:
+                    values[key] = float(values[key])
+                except (TypeError, ValueError):
+                    pass  # RecordingSpec names it below
+        try:
+            RecordingSpec(**values)
+        except RecordingError as e:
+            raise ConfigError(f"{name}: {e}") from None
+        out.append(tuple(values.items()))
+    if not out:
+        raise ConfigError("env.replay_files is empty; allowed: at least one recording")
+    return tuple(out)
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
     """Crowd-navigation environment configuration.
@@ -197,7 +248,12 @@ class EnvConfig:
         doc="among obstacles, humans route around them and a human that stays stuck gets a new goal "
         "(docs/walls.md); false: straight at their goals with local avoidance only",
     )
-    human_policy: str = spec("orca", choices=("orca", "social_force"))
+    human_policy: str = spec(
+        "orca",
+        choices=("orca", "social_force", "replay"),
+        doc="how humans move: ORCA or Social Force (with env.scenario: replay, following their recordings while "
+        "avoiding each other); replay: exactly along their recordings (env.scenario: replay only)",
+    )
     predictor: str = spec("const_vel", choices=("none", "const_vel", "truth", "gst"))
     predictor_params: str = spec(
         "auto",
@@ -213,6 +269,25 @@ class EnvConfig:
     spawn_tries: int = spec(16, low=1, high=1024, doc="rejection-sampling candidates per spawn or respawn")
     goal_tries: int = spec(4, low=1, high=1024, doc="rejection-sampling candidates per goal change")
     orca_max_neighbors: int = spec(-1, low=-1, high=MAX_HUMANS, doc="-1: all other humans")
+
+    replay_files: tuple | None = spec(
+        None,
+        doc="env.scenario replay (or a mix with it): the recordings it plays, a list of entries, each a catalogue "
+        "name resolved in the user data directory ('eth-ucy': all, a fold such as 'zara1', or a file such as "
+        "'ucy/crowds_zara03.txt') or a mapping {path, seconds_per_frame or fps, format (optional: eth_ucy or "
+        "obsmat)}; read once when the env is built (docs/pedestrians.md)",
+    )
+    replay_augment: bool = spec(
+        True,
+        doc="replay: each episode rotates, reflects and shifts (by up to env.arena_size / 2) the recorded scene at "
+        "random; evaluation turns it off for reproducible episodes",
+    )
+    replay_overflow: str = spec(
+        "error",
+        choices=("error", "nearest"),
+        doc="replay: a recording with more people in view at once than env.num_humans is an error, or (nearest) "
+        "the human slots play the people nearest the robot",
+    )
 
     # --- numeric (traced) --------------------------------------------------------------------------
     active_humans_min: float | None = traced(
@@ -341,6 +416,7 @@ class EnvConfig:
                     )
         if self.mix_scenarios is not None:
             object.__setattr__(self, "mix_scenarios", scenario_list(self.mix_scenarios))
+        self._check_replay()
         if self.obstacles is not None:
             room = MAX_OBSTACLE_SLOTS - self.scenario_obstacle_slots
             polygons = check_polygons(
@@ -391,6 +467,28 @@ class EnvConfig:
                 f"env.pred_horizon = {self.pred_horizon} must be 5 with env.predictor = 'gst' "
                 "(the learned model predicts 5 steps)"
             )
+
+    def _check_replay(self) -> None:
+        plays = "replay" in self.drawn_scenarios
+        if self.human_policy == "replay" and self.drawn_scenarios != ("replay",):
+            raise ConfigError(
+                f"env.human_policy = 'replay' moves humans along recordings, but env.scenario = {self.scenario!r} "
+                f"plays {', '.join(self.drawn_scenarios)}; allowed: env.scenario: replay, or human_policy orca or "
+                "social_force (which also follow the recordings, reactively, in a mix)"
+            )
+        if self.replay_files is None:
+            if plays:
+                raise ConfigError(
+                    "env.replay_files is required with the replay scenario: a list of catalogue names (e.g. "
+                    "[eth-ucy]) or of {path, seconds_per_frame or fps} mappings"
+                )
+            return
+        if not plays:
+            raise ConfigError(
+                f"env.replay_files is given but env.scenario = {self.scenario!r} plays no recordings; allowed: null "
+                "(or env.scenario: replay, or a mix with replay)"
+            )
+        object.__setattr__(self, "replay_files", replay_file_list(self.replay_files))
 
     def resolved(self, name: str):
         """A traced field's value as `EnvParams` carries it (the active-human bounds default to the capacity)."""
@@ -652,6 +750,8 @@ class TrainConfig:
                 env[name] = list(env[name])
         if env["obstacles"] is not None:
             env["obstacles"] = [[list(v) for v in polygon] for polygon in env["obstacles"]]
+        if env["replay_files"] is not None:
+            env["replay_files"] = [f if isinstance(f, str) else dict(f) for f in env["replay_files"]]
         return data
 
     def to_yaml(self) -> str:
@@ -693,6 +793,8 @@ def griddable_fields() -> list[str]:
 
 def __getattr__(name: str):
     """CROWD_SCENARIOS, OBSTACLE_SCENARIOS and SCENARIOS: the registry's names, read when accessed."""
+    if name == "SCENARIOS":  # the synthetic ones: replay needs recordings, which no suite of scenarios assumes
+        return tuple(n for n in registry.names() if registry.kind_of(n) != "replay")
     if name in _SCENARIO_LISTS:
         return registry.names(_SCENARIO_LISTS[name])
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

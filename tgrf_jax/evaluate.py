@@ -332,7 +332,9 @@ def evaluate(
         raise ValueError(f"n_episodes = {n_episodes} is out of range; allowed: 1 .. {MAX_EPISODES:,}")
     if batch_size is not None and batch_size < 1:
         raise ValueError(f"batch_size = {batch_size} must be >= 1")
-    eval_env = CrowdNavEnv(dataclasses.replace(env.config, track_future_intrusion=True), env.reward_config)
+    eval_env = CrowdNavEnv(
+        dataclasses.replace(env.config, track_future_intrusion=True, replay_augment=False), env.reward_config
+    )
     params = (eval_env.default_params if params is None else params).validate(eval_env.config)
     batch_size = min(MAX_BATCH if batch_size is None else batch_size, n_episodes)
     chunks = []

@@ -25,8 +25,8 @@ if TYPE_CHECKING:  # annotations only (pyproject: import-linter skips type-check
 
 Points = Any  # a float32 array of points (..., 2)
 
-Kind = Literal["crowd", "obstacle"]
-KINDS: tuple[str, ...] = ("crowd", "obstacle")
+Kind = Literal["crowd", "obstacle", "replay"]
+KINDS: tuple[str, ...] = ("crowd", "obstacle", "replay")
 _NAME = re.compile(r"[a-z][a-z0-9_]*")
 
 
@@ -51,11 +51,10 @@ class Scenario:
     samplers ignore it (`tgrf_jax.env.scenarios.open_space.open_space` adapts a sampler without it).
 
     How a scenario supplies the humans' paths: a human's path is its destination, `Humans.goal`, which only
-    `spawn`, `new_goal` and `respawn` set, and the point it heads for each step. That point is the goal itself in
-    an open space; among obstacles the environment routes every human around them whatever its scenario
-    (`tgrf_jax.env.routing`), handing ORCA or Social Force a `tgrf_jax.env.humans.Steering` of targets instead of
-    goals. A scenario that supplies recorded paths hands its targets over the same way (docs/design.md,
-    "Scenarios").
+    `spawn`, `new_goal` and `respawn` set, and the point it heads for each step, the goal itself unless a
+    `tgrf_jax.env.humans.Steering` says otherwise: routing around obstacles (`tgrf_jax.env.routing.aim`) and
+    replayed recordings (kind 'replay', `tgrf_jax.env.replay`, which also draw their own episodes) do
+    (docs/design.md, "Scenarios").
     """
 
     robot: Callable[[Any, EnvParams, int], Robot]
@@ -80,7 +79,10 @@ def register(name: str, scenario: Scenario, *, kind: Kind) -> Scenario:
 
     kind 'crowd': an open space (no `layout`); the default mix (`env.scenario: mix` without `env.mix_scenarios`)
     draws among every crowd scenario. kind 'obstacle': draws obstacles (a `layout`); an env playing one carries
-    the scenario obstacle slots. Register at import time, before any env is built: an env's table of samplers is
+    the scenario obstacle slots. kind 'replay': episodes played from recorded pedestrians (`env.scenario: replay`,
+    `tgrf_jax.env.replay`), which the env draws itself from the recordings it loads; the record's samplers stand in
+    for it only where a mix needs every scenario's (their draws are discarded), and the default mix leaves it
+    out, as it needs recordings. Register at import time, before any env is built: an env's table of samplers is
     built once, from the registry as it is then. Raises ValueError for a taken or malformed name, a wrong record
     or a kind that does not match the record.
     """
@@ -109,7 +111,7 @@ def get(name: str) -> Scenario:
 
 
 def kind_of(name: str) -> str:
-    """The kind of a registered scenario: 'crowd' or 'obstacle'."""
+    """The kind of a registered scenario: 'crowd', 'obstacle' or 'replay'."""
     return _REGISTRY[name].kind
 
 

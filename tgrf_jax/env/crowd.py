@@ -20,10 +20,12 @@ from tgrf_jax.config import EnvConfig, RewardConfig, reward_config_from_dict
 from tgrf_jax.env import detection, orca, prediction, routing, scenarios, sensing, stuck
 from tgrf_jax.env import humans as humans_lib
 from tgrf_jax.env import obstacles as obstacles_lib
+from tgrf_jax.env import replay as replay_lib
 from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.gst import history as gst_history
 from tgrf_jax.env.gst import weights as gst_weights
 from tgrf_jax.env.obstacles import Obstacles
+from tgrf_jax.env.scenarios.sampling import sample_attributes
 from tgrf_jax.env.types import (
     COLLISION,
     OBSTACLE_COLLISION,
@@ -119,6 +121,10 @@ class CrowdNavEnv:
         self.reward_config = _as_reward_config(reward)
         # the env's scenarios (its env.scenario, or the mix's), from the registry; EnvState.scenario indexes it
         self.scenario_table = scenarios.ScenarioTable.of(self.config)
+        # the recordings of the replay scenario, read and packed here, before anything compiles (else None)
+        drawn = self.config.drawn_scenarios
+        self.replay = replay_lib.load_data(self.config) if "replay" in drawn else None
+        self._replay_index = drawn.index("replay") if "replay" in drawn else None
 
     def __repr__(self):
         c = self.config
@@ -127,15 +133,18 @@ class CrowdNavEnv:
             f"predictor={c.predictor!r}, kinematics={c.kinematics!r}, reward={self.reward_config.scheme!r})"
         )
 
-    # Environments with equal configs are interchangeable, so jit caches keyed on them are shared.
+    # Environments with equal configs are interchangeable, so jit caches keyed on them are shared. Replayed
+    # recordings are constants of the compiled program: envs share them (and a program) only while the files are
+    # unchanged on disk (`replay.load_data` hands equal configs the same arrays until a file changes).
     def __eq__(self, other):
-        return isinstance(other, CrowdNavEnv) and (self.config, self.reward_config) == (
+        return isinstance(other, CrowdNavEnv) and (self.config, self.reward_config, self.replay) == (
             other.config,
             other.reward_config,
+            other.replay,
         )
 
     def __hash__(self):
-        return hash((self.config, self.reward_config))
+        return hash((self.config, self.reward_config, self.replay))
 
     @property
     def default_params(self) -> EnvParams:
@@ -151,6 +160,21 @@ class CrowdNavEnv:
     @property
     def obs_human_dim(self) -> int:
         return self.config.obs_human_dim
+
+    @property
+    def replay_only(self) -> bool:
+        """Every episode plays a recording (env.scenario: replay): the synthetic samplers are never called."""
+        return self.replay is not None and len(self.scenario_table.names) == 1
+
+    def _is_replay(self, index):
+        """Whether an episode of scenario `index` plays a recording (a traced bool in a mix with replay)."""
+        return True if self.replay_only else index == self._replay_index
+
+    def _pick(self, is_replay, replayed, synthetic):
+        """`replayed` in replay episodes, else `synthetic` (pytrees of equal structure)."""
+        if self.replay_only:
+            return replayed
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(is_replay, a, b), replayed, synthetic)
 
     # ------------------------------------------------------------------ public API (auto-reset)
     def reset(self, key, params: EnvParams | None = None) -> tuple[Obs, EnvState]:
@@ -230,12 +254,26 @@ class CrowdNavEnv:
         # Folded keys (not splits) keep the robot and crowd of a full-crowd circle-crossing episode what they were
         # before the neighbour distance, the crowd size and the scenario became random.
         index = table.draw(jax.random.fold_in(key, 3), params.scenario_weights)
-        robot = table.robot(k_robot, params, index, tries)
+        replay_state = None
+        if self.replay is not None:
+            is_replay = self._is_replay(index)
+            radius, v_pref = sample_attributes(jax.random.fold_in(key, 9), params, (self.config.num_humans,))
+            replay_state, r_robot, r_humans = replay_lib.reset(
+                jax.random.fold_in(key, 8), self.replay, params, self.config, radius, v_pref
+            )
+        robot = r_robot if self.replay_only else table.robot(k_robot, params, index, tries)
+        if self.replay is not None:
+            robot = self._pick(is_replay, r_robot, robot)
         layout, dropped = self._layout(jax.random.fold_in(key, 4), params, robot, index)
-        active = scenarios.active_slots(jax.random.fold_in(key, 2), params, self.config.num_humans)
-        humans = scenarios.spawn_humans(
-            k_humans, params, robot, self.config.num_humans, tries, active, table, index, layout
-        )
+        if self.replay_only:
+            humans = r_humans
+        else:
+            active = scenarios.active_slots(jax.random.fold_in(key, 2), params, self.config.num_humans)
+            humans = scenarios.spawn_humans(
+                k_humans, params, robot, self.config.num_humans, tries, active, table, index, layout
+            )
+            if self.replay is not None:
+                humans = self._pick(is_replay, r_humans, humans)
         neighbor_dist = scenarios.uniform(
             jax.random.fold_in(key, 1), (), params.orca_neighbor_dist_min, params.orca_neighbor_dist_max
         )
@@ -251,6 +289,7 @@ class CrowdNavEnv:
             progress=stuck.fresh(humans),
             obstacle_table=self._obstacle_table(layout),
             routing=self._plan_routes(layout, humans, params),
+            replay=replay_state,
         )
         if self.config.randomise_sensing:
             errors = detection.draw_errors(jax.random.fold_in(key, 5), params, self.config.max_detection_latency)
@@ -304,7 +343,8 @@ class CrowdNavEnv:
     def routes_humans(self) -> bool:
         """Whether the humans route around obstacles (env.human_routing, in an env with obstacle slots and humans)."""
         cfg = self.config
-        return cfg.human_routing and cfg.obstacle_slots > 0 and cfg.num_humans > 0
+        # recorded people follow their recordings, never a route (a mix routes its synthetic episodes' humans)
+        return cfg.human_routing and cfg.obstacle_slots > 0 and cfg.num_humans > 0 and not self.replay_only
 
     def _plan_routes(self, layout: Obstacles, humans, params: EnvParams):
         if not self.routes_humans:
@@ -403,23 +443,51 @@ class CrowdNavEnv:
 
         robot, delta_heading = move_robot(robot0, action, params, cfg.kinematics)
         layout = state.obstacles
-        # folded keys: the goal and respawn draws stay what they are without routing
-        steering, unreachable = self._steering(jax.random.fold_in(key, 5), state, params)
-        human_vel = humans_lib.human_velocities(
-            humans0,
-            robot0 if cfg.robot_visible else None,
-            params,
-            cfg,
-            state.orca_neighbor_dist,
-            layout,
-            state.obstacle_table,
-            steering,
-        )
-        humans = humans0.replace(pos=humans0.pos + human_vel * params.dt, vel=human_vel)
+        step_count = state.step_count + 1
+        is_replay = self._is_replay(state.scenario)
+        if self.replay_only and cfg.human_policy == "replay":
+            humans, unreachable = humans0, jnp.zeros((), jnp.int32)  # moved along the recording below
+        else:
+            # folded keys: the goal and respawn draws stay what they are without routing
+            steering, unreachable = self._steering(jax.random.fold_in(key, 5), state, params)
+            solver_humans = humans0
+            if self.replay is not None:
+                # reactive replay: heading along the recording, at the speeds that keep to it
+                r_steering, r_humans = replay_lib.steering(self.replay, state.replay, humans0, params, state.step_count)
+                if self.replay_only:
+                    steering = r_steering
+                else:
+                    steering = self._pick(is_replay, r_steering, self._given_velocity(humans0, steering))
+                    unreachable = jnp.where(is_replay, 0, unreachable)
+                solver_humans = self._pick(is_replay, r_humans, humans0)
+            human_vel = humans_lib.human_velocities(
+                solver_humans,
+                robot0 if cfg.robot_visible else None,
+                params,
+                cfg,
+                state.orca_neighbor_dist,
+                layout,
+                state.obstacle_table,
+                steering,
+            )
+            humans = humans0.replace(pos=humans0.pos + human_vel * params.dt, vel=human_vel)
+        sweep_from = humans0.pos
+        replay_state = state.replay
+        if self.replay is not None:
+            # the recording's people at the new step: those who walked on from their slot moved by the step's
+            # velocities (reactive) or along the recording; those entering appear where recorded, those leaving go
+            moved = None if cfg.human_policy == "replay" else humans
+            r_next, r_state = replay_lib.advance(self.replay, state.replay, humans0, moved, robot, step_count)
+            humans = self._pick(is_replay, r_next, humans)
+            replay_state = self._pick(is_replay, r_state, state.replay)
+            # a person's sweep starts where their velocity says they came from (not from a parking spot or another
+            # slot's person)
+            sweep_from = self._pick(is_replay, r_next.pos - r_next.vel * params.dt, sweep_from)
+        human_vel = humans.vel
 
         # Outcome of the action, judged on the post-step state (collisions swept over the step).
         contact = params.robot_radius + humans.radius
-        closest = swept_min_distance(humans0.pos - robot0.pos, (human_vel - robot.vel) * params.dt)
+        closest = swept_min_distance(sweep_from - robot0.pos, (human_vel - robot.vel) * params.dt)
         hit_human = jnp.any((closest < contact) & humans.active)
         if cfg.obstacle_slots > 0:
             hit_obstacle = obstacles_lib.swept_distance(robot0.pos, robot.pos, layout) < params.robot_radius
@@ -438,8 +506,8 @@ class CrowdNavEnv:
         goal_dist = jnp.linalg.norm(robot.pos - robot.goal)
         reached = goal_dist < params.goal_tolerance
 
-        step_count = state.step_count + 1
-        if cfg.num_humans > 0:
+        replayed = humans
+        if cfg.num_humans > 0 and not self.replay_only:
             humans = scenarios.change_goals(
                 k_goal, humans, robot, params, step_count, cfg.goal_tries, self.scenario_table, state.scenario, layout
             )
@@ -451,7 +519,13 @@ class CrowdNavEnv:
         humans, progress, reassigned = self._unstick(
             jax.random.fold_in(key, 6), humans, robot, params, progress, step_count, state.scenario, layout
         )
-        next_state = state.replace(robot=robot, humans=humans, step_count=step_count, progress=progress)
+        if self.replay is not None and not self.replay_only:
+            # replay episodes of a mix: no goal changes, respawns nor new goals for the stuck
+            humans = self._pick(is_replay, replayed, humans)
+            reassigned = jnp.where(is_replay, 0, reassigned)
+        next_state = state.replace(
+            robot=robot, humans=humans, step_count=step_count, progress=progress, replay=replay_state
+        )
         if state.routing is not None:
             changed = jnp.any(humans.goal != humans0.goal, axis=-1)
             next_state = next_state.replace(routing=routing.replan(state.routing, humans.goal, changed, layout))
@@ -483,7 +557,10 @@ class CrowdNavEnv:
         next_state = next_state.replace(goal_dist_ref=jnp.where(in_danger, state.goal_dist_ref, goal_dist))
 
         terminated = collided | reached
-        truncated = (step_count >= params.max_steps) & ~terminated
+        out_of_time = step_count >= params.max_steps
+        if self.replay is not None:  # or out of recording
+            out_of_time = out_of_time | (replay_lib.finished(self.replay, replay_state, step_count) & is_replay)
+        truncated = out_of_time & ~terminated
         outcome = jnp.select(
             [hit_human, hit_obstacle, reached, truncated], [COLLISION, OBSTACLE_COLLISION, SUCCESS, TIMEOUT], RUNNING
         ).astype(jnp.int32)
@@ -523,6 +600,8 @@ class CrowdNavEnv:
         if self.config.predictor == "gst":
             pred = gst_history.predictions(params.predictor, state.history)
             return pred.means, visible & pred.out_mask
+        if self.replay is not None and self.config.predictor == "truth":
+            return self._true_future(state, params, self.config.pred_horizon), visible
         return prediction.predict(
             state.humans,
             params,
@@ -541,18 +620,44 @@ class CrowdNavEnv:
         if cfg.predictor == "truth":
             future = predictions
         else:
-            future = prediction.true_future(
-                state.humans,
-                params,
-                cfg,
-                cfg.pred_horizon,
-                state.orca_neighbor_dist,
-                state.obstacles,
-                state.obstacle_table,
-                state.routing,
-            )
+            future = self._true_future(state, params, cfg.pred_horizon)
         dist = norm(future - state.robot.pos)
         dist = jnp.where(visible[:, None], dist, jnp.inf)
         nearest = jnp.min(dist, initial=jnp.inf)
         hit = nearest < params.intrusion_radius
         return hit, jnp.where(hit, nearest, jnp.inf)
+
+    def _true_future(self, state: EnvState, params: EnvParams, k: int):
+        """The humans' true positions (N, k, 2) at the next k steps: the human model rolled forward, or in a
+        replay episode the recording (exact for env.human_policy replay; the path the people follow, for
+        reactive replay)."""
+        cfg = self.config
+        if self.replay is not None:
+            recorded = replay_lib.future(self.replay, state.replay, state.humans, state.step_count, k)
+            if self.replay_only:
+                return recorded
+        rolled = prediction.true_future(
+            state.humans,
+            params,
+            cfg,
+            k,
+            state.orca_neighbor_dist,
+            state.obstacles,
+            state.obstacle_table,
+            state.routing,
+        )
+        return rolled if self.replay is None else jnp.where(self._is_replay(state.scenario), recorded, rolled)
+
+    def _given_velocity(self, humans, steering):
+        """A synthetic episode's steering (None: straight at the goals) in the form replay's takes, a preferred
+        velocity given outright, so a mix can select between the two: ORCA's preferred velocity itself; for Social
+        Force the pull towards the target at the human's own speed."""
+        n = humans.pos.shape[0]
+        if steering is None:
+            steering = humans_lib.Steering(humans.goal, jnp.ones((n,), bool), jnp.zeros((n, 2)))
+        if self.config.human_policy == "orca":
+            velocity = humans_lib.steered_preference(humans.pos, humans.goal, steering)
+        else:
+            offset = steering.target - humans.pos
+            velocity = offset / jnp.maximum(norm(offset), 1e-9)[:, None] * humans.v_pref[:, None]
+        return humans_lib.Steering(steering.target, steering.at_goal, jnp.zeros((n, 2)), velocity=velocity)

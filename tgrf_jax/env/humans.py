@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax.numpy as jnp
 from flax import struct
 
@@ -26,16 +28,21 @@ class Steering:
     target (N, 2): the point each human heads for; at_goal (N,) bool: the target is the goal itself (ORCA then
     slows within 1 m of it as usual, while an intermediate target is approached at full preferred speed);
     jitter (N, 2): added to ORCA's preferred velocity, a tiny perturbation that breaks exact symmetries (as
-    RVO2's examples do), zeros for none.
+    RVO2's examples do), zeros for none. velocity (N, 2) or None: a preferred velocity given outright, in place of
+    the unit vector towards the target (replayed recordings: the velocity that follows the recording); ORCA takes
+    it as it is, Social Force pulls towards the target at its speed (at most the human's v_pref).
     """
 
     target: jnp.ndarray
     at_goal: jnp.ndarray
     jitter: jnp.ndarray
+    velocity: Any = None
 
 
 def steered_preference(pos, goal, steering: Steering):
     """ORCA's preferred velocities (N, 2) towards the steering targets."""
+    if steering.velocity is not None:
+        return steering.velocity + steering.jitter
     offset = steering.target - pos
     dist = safe_norm(offset)
     toward = offset / jnp.maximum(dist, 1e-9)[..., None]
@@ -83,6 +90,8 @@ def human_velocities(
         pref = preferred_velocity(pos, goal) if steering is None else steered_preference(pos, goal, steering)
     elif steering is not None:
         goal = steering.target  # Social Force pulls towards its goal at full speed: the target takes its place
+        if steering.velocity is not None:  # ... or at the speed given
+            v_pref = jnp.minimum(v_pref, jnp.linalg.norm(steering.velocity, axis=-1))
     present = humans.active
     if robot is not None:
         present = jnp.concatenate([present, jnp.ones((1,), bool)])

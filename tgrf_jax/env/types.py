@@ -5,12 +5,13 @@ from __future__ import annotations
 from typing import Any
 
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from tgrf_jax.config import EnvConfig, RewardConfig
 from tgrf_jax.env.obstacles import Obstacles
 from tgrf_jax.env_rules import check_detection_latency, check_env_relations, check_scenario_weights
-from tgrf_jax.fields import check_traced, concrete, traced_names, traced_pytree, traced_values
+from tgrf_jax.fields import ConfigError, check_traced, concrete, first_where, traced_names, traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
 # Episode outcome codes carried in `Info.outcome`: COLLISION is with a human, OBSTACLE_COLLISION with a static
@@ -45,6 +46,14 @@ class _EnvParamsMethods:
             check_detection_latency(
                 concrete(self.detection_latency, "env.detection_latency"), config.max_detection_latency
             )
+            if "replay" in config.drawn_scenarios:
+                dt = concrete(self.dt, "env.dt")
+                hit = first_where(~np.isclose(dt, config.dt), dt)
+                if hit:
+                    raise ConfigError(
+                        f"env.dt = {hit[0]!s} must equal the config's env.dt = {config.dt:g} in an env with the "
+                        "replay scenario: the recordings are resampled onto it when the env is built"
+                    )
         check_traced(self.reward, RewardConfig, "reward")
         return self
 
@@ -68,7 +77,9 @@ class Humans:
     """True state of the N human slots (world frame).
 
     Only the slots where `active` holds are people in the scene; the others are parked far away, stand still
-    and are masked out of every interaction, observation and metric (the active ones fill the first slots).
+    and are masked out of every interaction, observation and metric. In the synthetic scenarios the active ones
+    fill the first slots and stay active for the episode; replayed recordings (`tgrf_jax.env.replay`) activate a
+    slot while its recorded person is in view, in any slot.
     """
 
     pos: jnp.ndarray  # (N, 2)
@@ -76,7 +87,7 @@ class Humans:
     goal: jnp.ndarray  # (N, 2)
     radius: jnp.ndarray  # (N,)
     v_pref: jnp.ndarray  # (N,)
-    active: jnp.ndarray  # (N,) bool, fixed for the episode
+    active: jnp.ndarray  # (N,) bool (fixed for the episode, except in replayed recordings)
 
 
 @struct.dataclass
@@ -109,6 +120,8 @@ class EnvState:
     # the params' values hold); the last env.max_detection_latency `Detections` frames, newest first, else None
     sensor_errors: Any = None
     detections: Any = None
+    # the recording an episode plays (tgrf_jax.env.replay.ReplayState) in an env with the replay scenario, else None
+    replay: Any = None
 
 
 @struct.dataclass

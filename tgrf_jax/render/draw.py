@@ -113,6 +113,7 @@ def view_limits(ep: Episode, margin: float = 0.8, obstacle_reach: float = 1.5) -
     if ep.num_humans:
         pts.append(ep.human_pos.reshape(-1, 2))
     pts = np.concatenate(pts)
+    pts = pts[np.isfinite(pts).all(axis=1)]  # NaN: an empty slot of a replayed recording
     if ep.obstacles:
         lo, hi = pts.min(0) - obstacle_reach, pts.max(0) + obstacle_reach
         near = [c for poly in ep.obstacles for a, b in _edges(poly) if (c := _clip_segment(a, b, lo, hi)) is not None]
@@ -124,11 +125,12 @@ def view_limits(ep: Episode, margin: float = 0.8, obstacle_reach: float = 1.5) -
 
 
 def _trail_segments(points: np.ndarray, max_jump: float) -> list[np.ndarray]:
-    """Split a (T, 2) track wherever it jumps further than `max_jump` in one step (a respawn)."""
+    """Split a (T, 2) track wherever it jumps further than `max_jump` in one step (a respawn) or is NaN (an empty
+    slot of a replayed recording)."""
     if len(points) < 2:
         return []
-    jumps = np.nonzero(np.linalg.norm(np.diff(points, axis=0), axis=-1) > max_jump)[0] + 1
-    return [seg for seg in np.split(points, jumps) if len(seg) >= 2]
+    jumps = np.nonzero(~(np.linalg.norm(np.diff(points, axis=0), axis=-1) <= max_jump))[0] + 1
+    return [seg for seg in np.split(points, jumps) if len(seg) >= 2 and np.isfinite(seg).all()]
 
 
 def _legend_handles(ep: Episode, show_rays: bool = False):

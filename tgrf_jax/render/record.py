@@ -27,6 +27,10 @@ class Episode:
     2 pi k / R` counter-clockwise, ranges capped at `sensor_range`), None when the env has no LiDAR
     (`env.lidar_rays: 0`). `obstacle_dist` is the robot's edge-to-edge distance to the nearest obstacle in every
     state (negative: overlapping one), None without obstacles.
+
+    In replayed recordings (`env.scenario: replay`) people enter and leave the scene during the episode: every
+    human slot is kept, `active` says where a slot holds someone, and `human_pos` is NaN where it does not (nothing
+    is drawn there, and no distance counts it). Elsewhere the slots active at the start are the humans, throughout.
     """
 
     label: str
@@ -54,6 +58,7 @@ class Episode:
     lidar: np.ndarray | None = None  # (T+1, R) LiDAR ranges (m) of every state, None without a LiDAR
     obstacle_dist: np.ndarray | None = None  # (T+1,) robot edge distance to the nearest obstacle, None without
     occlusion: bool = False  # env.occlusion: humans hidden behind obstacles count as not visible
+    active: np.ndarray | None = None  # (T+1, N) bool where slots hold someone (replayed recordings), else None
 
     @property
     def steps(self) -> int:
@@ -96,7 +101,7 @@ class Episode:
         if self.num_humans == 0:
             return np.full(self.steps + 1, np.inf)
         d = np.linalg.norm(self.human_pos - self.robot_pos[:, None], axis=-1) - self.robot_radius - self.human_radius
-        return d.min(axis=1)
+        return np.where(np.isnan(d), np.inf, d).min(axis=1)  # NaN: an empty slot of a replayed recording
 
     def summary(self) -> dict:
         return dict(
@@ -217,26 +222,37 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
     `policy` follows the `tgrf_jax.policies` interface (baselines or `LearnedPolicy`). Each episode runs until it
     ends (success, a collision with a human or an obstacle, or the time limit). Keys and step order are those of
     `tgrf_jax.evaluate.run_episodes`, so the same key gives the same episodes; use `eval_key(seed)` to replay what
-    `evaluate` / `tgrf-eval` played.
+    `evaluate` / `tgrf-eval` played (recordings, `env.scenario: replay`, are played unaugmented, as there).
     """
     import jax
 
     if int(n_episodes) < 1:
         raise ValueError(f"n_episodes = {n_episodes} must be >= 1")
+    if getattr(env, "replay", None) is not None and env.config.replay_augment:
+        # evaluate() plays recordings unaugmented: the same key then gives the episodes it played
+        from tgrf_jax.env import CrowdNavEnv
+
+        env = CrowdNavEnv(dataclasses.replace(env.config, replay_augment=False), env.reward_config)
     params = (env.default_params if params is None else params).validate(env.config)
     n_steps = episode_steps(params)
     first, outs = jax.device_get(_record_jit()(env, policy, key, int(n_episodes), params, n_steps))
     label = label or getattr(policy, "name", None) or type(policy).__name__
     k = env.config.pred_horizon if env.config.uses_predictions else 0
     occlusion = bool(env.config.occlusion and env.config.obstacle_slots > 0)
+    replayed = getattr(env, "replay", None) is not None
     episodes = []
     for b in range(int(n_episodes)):
         steps = int(outs["alive"][:, b].sum())
         # Inactive slots (the last ones, parked far away) are no part of the scene: cut from every human array.
         # The observation's rows beyond the active count are masked, as nobody inactive is ever visible.
-        count = int(first["active"][b].sum())
+        # (Replayed recordings fill and empty their slots as people come and go: all are kept, with their mask.)
         seq = lambda name, b=b, steps=steps: np.concatenate([first[name][b][None], outs[name][:steps, b]])
+        count = env.config.num_humans if replayed else int(first["active"][b].sum())
         humans_seq = lambda name, seq=seq, count=count: seq(name)[:, :count]
+        active = humans_seq("active").astype(bool) if replayed else None
+        human_pos = humans_seq("human_pos")
+        if replayed:
+            human_pos = np.where(active[..., None], human_pos, np.nan)
         robot_pos = seq("robot_pos")
         obs_humans = humans_seq("obs_humans")
         n = obs_humans.shape[1]
@@ -251,7 +267,7 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
                 robot_pos=robot_pos,
                 robot_vel=seq("robot_vel"),
                 goal=np.asarray(first["goal"][b]),
-                human_pos=humans_seq("human_pos"),
+                human_pos=human_pos,
                 human_radius=humans_seq("human_radius"),
                 visible=humans_seq("visible").astype(bool),
                 obs_human_pos=obs_pos,
@@ -274,6 +290,7 @@ def record_episodes(env, policy, key, n_episodes: int = 1, params=None, *, label
                 lidar=np.asarray(seq("lidar"), np.float64) if "lidar" in first else None,
                 obstacle_dist=np.asarray(seq("obstacle_dist"), np.float64) if "obstacle_dist" in first else None,
                 occlusion=occlusion,
+                active=active,
             )
         )
     return episodes

@@ -143,7 +143,9 @@ class BatchedTrainer:
         # would otherwise come back replicated, and the compiled chunk refuses them as its next input
         self.jit_run_chunk = jax.jit(run_chunk, donate_argnums=0, out_shardings=self.sharding)
         net = trainer.net
-        self.eval_env = CrowdNavEnv(dataclasses.replace(config.env, track_future_intrusion=True), config.reward)
+        self.eval_env = CrowdNavEnv(
+            dataclasses.replace(config.env, track_future_intrusion=True, replay_augment=False), config.reward
+        )
 
         def eval_stats(params, env_params, key, n_episodes):
             def one(p, ep, k):
@@ -208,7 +210,12 @@ def evaluate_runs(batched: BatchedTrainer, runs, params, g_pad: int, episodes: i
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.evaluate import summarize
 
-    envs = [CrowdNavEnv(dataclasses.replace(r.config.env, track_future_intrusion=True), r.config.reward) for r in runs]
+    envs = [
+        CrowdNavEnv(
+            dataclasses.replace(r.config.env, track_future_intrusion=True, replay_augment=False), r.config.reward
+        )
+        for r in runs
+    ]
     env_params = _place(_pad(_stack([e.default_params for e in envs]), g_pad), batched.sharding)
     key = jax.random.fold_in(jax.random.key(seed), 0)  # `evaluate` with one batch of all episodes
     stats = _host(batched.eval_stats(params, env_params, key, episodes))

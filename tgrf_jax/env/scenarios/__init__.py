@@ -35,6 +35,9 @@ register("corridor", obstacle_layouts.CORRIDOR, kind="obstacle")
 register("doorway", obstacle_layouts.DOORWAY, kind="obstacle")
 register("intersection", obstacle_layouts.INTERSECTION, kind="obstacle")
 register("random_obstacles", obstacle_layouts.RANDOM_OBSTACLES, kind="obstacle")
+# Recorded pedestrians (tgrf_jax.env.replay draws its episodes; circle crossing's samplers only fill its row of a
+# mix's table, and what they draw is replaced).
+register("replay", open_space.REPLAY_STAND_IN, kind="replay")
 
 __all__ = [
     "PARKING",

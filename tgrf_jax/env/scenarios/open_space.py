@@ -246,3 +246,7 @@ def _random_respawn(key, params, pos, goal, tries):
 
 
 RANDOM = crowd(arena_robot, _random_spawn, _random_new_goal, _random_respawn)
+
+# replay's record in the registry: its episodes come from recordings (tgrf_jax.env.replay); in a mix's table its
+# row needs samplers of the common shapes, and circle crossing's serve, their draws replaced by the recording's.
+REPLAY_STAND_IN = crowd(arena_robot, _circle_spawn, _circle_new_goal, _circle_respawn)
