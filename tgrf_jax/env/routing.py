@@ -90,8 +90,8 @@ def visible(p, q, obstacles: Obstacles, radius=0.0) -> jnp.ndarray:
     start, end, edge_valid = obstacle_lib.edges(obstacles)
     px, py, qx, qy = p[..., 0], p[..., 1], q[..., 0], q[..., 1]
     r2 = jnp.square(jnp.asarray(radius, jnp.float32))
-    blocked = jnp.zeros(jnp.broadcast_shapes(px.shape, qx.shape), bool)
-    for e in range(start.shape[0]):  # one fused loop over the pairs per edge (see obstacles.py on XLA:CPU)
+
+    def blocked_by(e, blocked):
         ax, ay, bx, by = start[e, 0], start[e, 1], end[e, 0], end[e, 1]
         s1 = jnp.sign(_cross(bx - ax, by - ay, px - ax, py - ay))
         s2 = jnp.sign(_cross(bx - ax, by - ay, qx - ax, qy - ay))
@@ -104,7 +104,10 @@ def visible(p, q, obstacles: Obstacles, radius=0.0) -> jnp.ndarray:
             jnp.minimum(_sq_dist_to_segment(ax, ay, px, py, qx, qy), _sq_dist_to_segment(bx, by, px, py, qx, qy)),
         )
         too_close = (near < r2) & (from_start >= r2)
-        blocked = blocked | (edge_valid[e] & (crosses | too_close))
+        return blocked | (edge_valid[e] & (crosses | too_close))
+
+    blocked = jnp.zeros(jnp.broadcast_shapes(px.shape, qx.shape), bool)
+    blocked = jax.lax.fori_loop(0, start.shape[0], blocked_by, blocked)
     return ~blocked
 
 
