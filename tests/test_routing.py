@@ -59,6 +59,20 @@ def test_box_corners_are_pushed_out_by_the_clearance():
     np.testing.assert_allclose(clearance, CLEARANCE * np.sqrt(2.0), rtol=1e-5)
 
 
+def test_packing_keeps_every_candidate_point_of_boxes_and_walls():
+    rng = np.random.default_rng(1)
+    boxes = [_box(*rng.uniform(-4, 4, 2), *rng.uniform(0.3, 1.0, 2)) for _ in range(3)]
+    walls = [[tuple(rng.uniform(-4, 4, 2)), tuple(rng.uniform(-4, 4, 2))] for _ in range(2)]
+    obstacles = _layout(*boxes, *walls, max_vertices=4)
+    points, ok = routing._corner_points(obstacles, jnp.float32(CLEARANCE))
+    packed, packed_ok = routing._packed(points, ok)
+    assert packed.shape == (5 * 4, 2)  # one entry per vertex slot
+    expected = np.asarray(points)[np.asarray(ok)]
+    kept = np.asarray(packed)[np.asarray(packed_ok)]
+    assert len(expected) == 3 * 4 + 2 * 4
+    np.testing.assert_array_equal(np.sort(kept, axis=0), np.sort(expected, axis=0))
+
+
 def test_floyd_warshall_matches_dijkstra_on_random_layouts():
     rng = np.random.default_rng(0)
     for _ in range(5):

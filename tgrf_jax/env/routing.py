@@ -57,9 +57,10 @@ _MIN_COS = 0.25
 class Roadmap:
     """An episode's routing graph.
 
-    points (N, 2) float32 and valid (N,) bool: N = 2 per vertex slot (a wall end needs two; a polygon corner
-    uses the first); cost (N, N) float32: shortest path lengths between points along visible links
-    (UNREACHABLE where there is no path or a point is invalid, 0 on the diagonal of valid points).
+    points (N, 2) float32 and valid (N,) bool: N is one per vertex slot when slots hold 4 vertices or more (a
+    polygon's corners; a wall's two ends on either side), else two (`_packed`); cost (N, N) float32: shortest
+    path lengths between points along visible links (UNREACHABLE where there is no path or a point is invalid,
+    0 on the diagonal of valid points).
     """
 
     points: jnp.ndarray
@@ -143,12 +144,29 @@ def _corner_points(obstacles: Obstacles, clearance):
     return points, ok
 
 
+def _packed(points, ok):
+    """The candidate points (M, V, 2, 2) as a flat list (N, 2), N = M * V when a slot holds 4 vertices or more:
+    a polygon's corner i in the slot's entry i, a wall's four points in its entries 0-3 (its two ends, on either
+    side). Every step's routing work grows with N, and only walls need a second point per vertex. With
+    fewer vertices per slot, N = 2 * M * V."""
+    num_v = points.shape[1]
+    if num_v < 4:
+        return points.reshape(-1, 2), ok.reshape(-1)
+    wall = jnp.sum(ok[..., 1], axis=1) > 0  # (M,): only a wall's end has a second point
+    i = jnp.arange(num_v)
+    # a wall's entries 2 and 3 take the second points of its vertices 0 and 1
+    second = jnp.take_along_axis(points[:, :, 1], jnp.clip(i - 2, 0, num_v - 1)[None, :, None], axis=1)
+    second_ok = jnp.take_along_axis(ok[:, :, 1], jnp.clip(i - 2, 0, num_v - 1)[None, :], axis=1) & (i >= 2)
+    use_second = wall[:, None] & (i >= 2)[None, :]
+    flat = jnp.where(use_second[..., None], second, points[:, :, 0])
+    flat_ok = jnp.where(use_second, second_ok, ok[:, :, 0])
+    return flat.reshape(-1, 2), flat_ok.reshape(-1)
+
+
 def build_roadmap(obstacles: Obstacles, clearance, radius=0.0) -> Roadmap:
     """The episode's roadmap for humans of radius up to `radius`, its points `clearance` (> radius) from the
     obstacles (see the module doc); links pass no edge closer than `radius`."""
-    points, ok = _corner_points(obstacles, jnp.asarray(clearance, jnp.float32))
-    points = points.reshape(-1, 2)
-    ok = ok.reshape(-1)
+    points, ok = _packed(*_corner_points(obstacles, jnp.asarray(clearance, jnp.float32)))
     # Dropped: points too close to another obstacle (a narrow gap) or inside a polygon.
     clear = obstacle_lib.clearance(points, obstacles) >= 0.95 * clearance
     valid = ok & clear
