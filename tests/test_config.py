@@ -127,3 +127,17 @@ def test_eval_and_render_play_the_env_and_reward_of_a_train_config(tmp_path):
     typo.write_text((CONFIGS / "tiny.yaml").read_text().replace("num_envs:", "num_env:"))
     with pytest.raises(ConfigError, match=r"unknown config key 'ppo.num_env'"):  # the other sections are checked too
         load_playable(str(typo), [], "tgrf-eval")
+
+
+def test_notes_name_a_wall_term_without_walls_and_gaps_routing_cannot_use():
+    assert TrainConfig().notes() == []
+    lone_wall_term = TrainConfig.from_dict({"reward": {"h_wall": 1.0}})
+    assert lone_wall_term.to_yaml().startswith("# note: reward.h_wall = 1 but the env has no obstacles")
+    left, right = [[-2, -1], [-0.5, -1], [-0.5, 1], [-2, 1]], [[0.3, -1], [2, -1], [2, 1], [0.3, 1]]
+    far = [[5, 5], [6, 6]]
+    narrow = TrainConfig.from_dict({"env": {"obstacles": [left, right, far]}})
+    (note,) = narrow.notes()  # ORCA humans keep 0.5 + 0.01 + 0.15 m; with the 0.3 m margin a gap needs 1.92 m
+    assert "gap between obstacles 0 and 1 is 0.80 m" in note and "(1.92 m:" in note and "env.route_margin" in note
+    assert TrainConfig.from_dict({"env": {"obstacles": [left, right], "human_routing": False}}).notes() == []
+    social_force = {"obstacles": [left, right], "human_policy": "social_force", "route_margin": 0.0}
+    assert TrainConfig.from_dict({"env": {**social_force, "human_radius_max": 0.35}}).notes() == []  # 0.7 < 0.8 m

@@ -33,7 +33,7 @@ from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exp
     traced,
     traced_names,
 )
-from tgrf_jax.polygons import check_polygons
+from tgrf_jax.polygons import check_polygons, narrow_gaps
 
 __all__ = [
     "ConfigError",
@@ -139,6 +139,8 @@ MAX_HUMANS = 100
 MAX_OBSTACLE_SLOTS = 32
 MAX_POLYGON_VERTICES = 32
 MAX_OBSTACLE_EDGES = 128  # obstacle slots x vertices per slot
+# ORCA humans keep r + this pad + env.orca_safety_space from everything (CrowdNav's ORCA radius).
+ORCA_RADIUS_PAD = 0.01
 # Time: steps of at least 10 ms and episodes of at most 1000 s keep an episode within 100,000 steps (int32 step
 # counters, evaluation loops and recordings that end).
 MIN_DT = 0.01
@@ -340,8 +342,8 @@ class EnvConfig:
         0.3,
         low=0.0,
         high=2.0,
-        doc="routing among obstacles: the humans' roadmap points lie env.human_radius_max + this many metres "
-        "from every obstacle (docs/scenarios.md, 'Routing')",
+        doc="routing among obstacles: the humans' roadmap points lie the largest human's body radius + this many "
+        "metres from every obstacle (docs/walls.md)",
     )
     unstuck_after: float = traced(
         10.0,
@@ -768,7 +770,24 @@ class TrainConfig:
                 f"reward.h_wall = {h_wall:g} but the env has no obstacles (no env.obstacles and no obstacle "
                 "scenario): the wall term stays 0"
             )
+        found.extend(self._narrow_gap_notes())
         return found
+
+    def _narrow_gap_notes(self) -> list[str]:
+        """Gaps of env.obstacles that routed humans will not plan through (narrower than the roadmap's clearance
+        on both sides; the roadmap drops the points there)."""
+        env = self.env
+        if not (env.obstacles and env.human_routing and env.num_humans > 0):
+            return []
+        body = env.human_radius_max + (ORCA_RADIUS_PAD + env.orca_safety_space if env.human_policy == "orca" else 0.0)
+        width = 2.0 * (body + env.route_margin)
+        return [
+            f"env.obstacles: the gap between obstacles {i} and {j} is {gap:.2f} m, narrower than twice the routing "
+            f"clearance ({width:.2f} m: 2 x (the largest human's body radius {body:.2f} m + env.route_margin "
+            f"{env.route_margin:g} m)), so routed humans will not plan a path through it; lower env.route_margin "
+            "or env.human_radius_max to open it"
+            for i, j, gap in narrow_gaps(env.obstacles, width)
+        ]
 
 
 def config_fields() -> list[str]:

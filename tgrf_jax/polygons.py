@@ -47,6 +47,49 @@ def segments_intersect(a, b, c, d) -> np.ndarray:
     return proper | touch
 
 
+def _edges(polygon: np.ndarray):
+    """(start, end) of a polygon's edges (a 2-vertex wall has one)."""
+    if len(polygon) == 2:
+        return polygon[:1], polygon[1:]
+    return polygon, np.roll(polygon, -1, axis=0)
+
+
+def _point_segment_distance(p, a, b) -> np.ndarray:
+    e = b - a
+    t = np.clip(np.sum((p - a) * e, -1) / np.maximum(np.sum(e * e, -1), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[..., None] * e), axis=-1)
+
+
+def polygon_gap(p, q) -> float:
+    """Smallest distance between the edges of polygons p and q ((n, 2) each); 0 where they touch or cross (one
+    inside the other also counts as 0 only where edges meet, which is enough to find narrow gaps)."""
+    a, b = (x[:, None, :] for x in _edges(np.asarray(p, float)))
+    c, d = (x[None, :, :] for x in _edges(np.asarray(q, float)))
+    a, b, c, d = np.broadcast_arrays(a, b, c, d)
+    if np.any(segments_intersect(a, b, c, d)):
+        return 0.0
+    return float(
+        np.min(
+            np.minimum(
+                np.minimum(_point_segment_distance(a, c, d), _point_segment_distance(b, c, d)),
+                np.minimum(_point_segment_distance(c, a, b), _point_segment_distance(d, a, b)),
+            )
+        )
+    )
+
+
+def narrow_gaps(polygons, width: float) -> list[tuple[int, int, float]]:
+    """(i, j, gap) for each pair of polygons whose gap is open (> 0) but narrower than `width`."""
+    polys = [np.asarray(p, float) for p in polygons]
+    found = []
+    for i in range(len(polys)):
+        for j in range(i + 1, len(polys)):
+            gap = polygon_gap(polys[i], polys[j])
+            if 0.0 < gap < width:
+                found.append((i, j, gap))
+    return found
+
+
 def check_polygons(polygons, field: str, *, max_polygons=None, max_vertices=None, why: str = "") -> tuple:
     """Validate obstacle polygons on the host; returns them as tuples of (x, y) float pairs (hashable, as configs are).
 

@@ -7,7 +7,7 @@ from typing import Any
 import jax.numpy as jnp
 from flax import struct
 
-from tgrf_jax.config import EnvConfig
+from tgrf_jax.config import ORCA_RADIUS_PAD, EnvConfig
 from tgrf_jax.env import orca, social_force
 from tgrf_jax.env.geometry import safe_norm
 from tgrf_jax.env.obstacles import Obstacles
@@ -47,10 +47,6 @@ def steered_preference(pos, goal, steering: Steering):
     dist = safe_norm(offset)
     toward = offset / jnp.maximum(dist, 1e-9)[..., None]
     return jnp.where(steering.at_goal[..., None], preferred_velocity(pos, goal), toward) + steering.jitter
-
-
-# ORCA radius = r + 0.01 + safety_space in the reference (orca.py:85-88).
-ORCA_RADIUS_PAD = 0.01
 
 
 def body_radius(radius, params: EnvParams, config: EnvConfig):
