@@ -199,12 +199,13 @@ def test_every_scenario_resets_and_steps(name):
         obs, state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
             jax.random.split(key, 16), state, jax.vmap(to_goal)(obs), params
         )
-        return (obs, state), (reward, state.humans.goal, state.scenario)
+        return (obs, state), (reward, state.humans.goal, state.scenario, state.humans.pos, info.humans_unreachable)
 
-    rew, goals, index = jax.jit(lambda c: jax.lax.scan(body, c, jax.random.split(jax.random.key(1), 40)))((obs, state))[
-        1
-    ]
+    run = jax.jit(lambda c: jax.lax.scan(body, c, jax.random.split(jax.random.key(1), 40)))
+    rew, goals, index, pos, unreachable = run((obs, state))[1]
     assert np.all(np.isfinite(np.asarray(rew))) and np.all(np.asarray(index) == 0)
+    assert np.all(np.isfinite(np.asarray(pos)))
+    assert int(np.asarray(unreachable).sum()) == 0  # among obstacles the humans route, and every goal has a path
     assert not np.array_equal(goals[-1], goal)  # goal changes and respawns happened
     if name == "perpendicular_traffic":
         assert np.allclose(np.asarray(goals)[..., 0], rad)  # the stream keeps its direction

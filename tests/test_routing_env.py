@@ -123,24 +123,3 @@ def test_open_space_has_no_routing_state_and_no_stuck_reassignments():
     _, state = env.reset(jax.random.key(0), params)
     assert state.routing is None
     assert not env.routes_humans
-
-
-def test_routing_runs_batched_in_the_obstacle_scenarios():
-    env = CrowdNavEnv({"scenario": "random_obstacles", "num_humans": 4}, "tgrf")
-    params = env.default_params
-
-    @jax.jit
-    def run(key):
-        obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, 4), params)
-
-        def body(state, k):
-            zero = jnp.zeros((4, env.action_size))
-            step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
-            _, state, _, _, _, info = step(jax.random.split(k, 4), state, zero, params)
-            return state, (state.humans.pos, info.humans_unreachable)
-
-        return jax.lax.scan(body, state, jax.random.split(key, 12))[1]
-
-    pos, unreachable = run(jax.random.key(3))
-    assert np.all(np.isfinite(np.asarray(pos)))
-    assert int(np.asarray(unreachable).sum()) == 0

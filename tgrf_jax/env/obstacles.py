@@ -3,8 +3,8 @@
 An episode's obstacles are M polygon slots of up to V vertices (`Obstacles`), counter-clockwise like RVO2's
 ``addObstacle`` (the interior lies on the left of each edge); a polygon of 2 vertices is a wall segment with no
 interior. Every function here is dense array code over all edges at once (E = M * V edge slots, the unused ones
-masked), so that it vectorises under ``jax.vmap`` over many environments (the LiDAR unrolls its edges and discs
-into one loop over the rays, with a running nearest hit). As in
+masked), so that it vectorises under ``jax.vmap`` over many environments (the LiDAR loops over its edges and
+discs, each pass over all rays with a running nearest hit). As in
 `geometry`, x and y are handled as separate arrays because reductions over a trailing axis of size 2 vectorise
 poorly on XLA:CPU. Degenerate input (points on an edge, zero-length edges or motions, parallel rays) gives
 finite results: every division and square root is guarded.
@@ -30,6 +30,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax import lax
 
 from tgrf_jax.fields import ConfigError
 from tgrf_jax.polygons import check_polygons
@@ -153,9 +154,16 @@ def _segments_cross(px, py, qx, qy, ax, ay, bx, by):
     return (s1 * s2 <= 0) & (s3 * s4 <= 0) & ~((s1 == 0) & (s2 == 0))
 
 
-# The point-against-edge queries below loop over the edges in Python, so that each is one fused, vectorised loop
-# over the points with a running result: a (..., E) table reduced over its small minor axis vectorises poorly
-# on XLA:CPU (under vmap especially) and costs several times more.
+# The point-against-edge queries below loop over the edges (`lax.fori_loop`), each iteration one fused,
+# vectorised pass over the points with a running result: a (..., E) table reduced over its small minor axis
+# vectorises poorly on XLA:CPU (under vmap especially), and a loop unrolled in Python costs minutes of compilation
+# in a program that asks many such queries, for no faster code.
+
+
+def _loop(count: int, body, init):
+    """`lax.fori_loop(0, count, body, init)`, or `init` when there is nothing to loop over (no edge slots, no
+    discs: the body could not even be traced)."""
+    return init if count == 0 else lax.fori_loop(0, count, body, init)
 
 
 def _inside_slots(px, py, obstacles: Obstacles):
@@ -163,12 +171,14 @@ def _inside_slots(px, py, obstacles: Obstacles):
     ax, ay, bx, by, valid = _slot_edges(obstacles)
     slots = []
     for m in range(ax.shape[0]):
-        odd = jnp.zeros(jnp.shape(px), bool)
-        for i in range(ax.shape[1]):
+
+        def crossing(i, odd, m=m):
             straddle = (ay[m, i] > py) != (by[m, i] > py)
             # The crossing lies right of p: compared by multiplying out the division, by the sign of dy.
             side = _cross(bx[m, i] - ax[m, i], by[m, i] - ay[m, i], px - ax[m, i], py - ay[m, i])
-            odd = odd ^ (straddle & valid[m, i] & jnp.where(by[m, i] > ay[m, i], side > 0, side < 0))
+            return odd ^ (straddle & valid[m, i] & jnp.where(by[m, i] > ay[m, i], side > 0, side < 0))
+
+        odd = _loop(ax.shape[1], crossing, jnp.zeros(jnp.shape(px), bool))
         slots.append(odd & (obstacles.num_vertices[m] >= 3))
     if not slots:
         return jnp.zeros(jnp.shape(px) + (0,), bool)
@@ -177,11 +187,12 @@ def _inside_slots(px, py, obstacles: Obstacles):
 
 def _sq_distance(px, py, obstacles: Obstacles):
     ax, ay, bx, by, valid = _flat_edges(obstacles)
-    best = jnp.full(jnp.shape(px), jnp.inf, jnp.float32)
-    for e in range(ax.shape[0]):
+
+    def nearer(e, best):
         sq = _closest_on_segment(px, py, ax[e], ay[e], bx[e], by[e])[2]
-        best = jnp.where(valid[e], jnp.minimum(best, sq), best)
-    return best
+        return jnp.where(valid[e], jnp.minimum(best, sq), best)
+
+    return _loop(ax.shape[0], nearer, jnp.full(jnp.shape(px), jnp.inf, jnp.float32))
 
 
 def distance_to_obstacles(points, obstacles: Obstacles):
@@ -210,15 +221,17 @@ def swept_distance(p0, p1, obstacles: Obstacles):
     """
     edges = _flat_edges(obstacles)
     px, py, qx, qy = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
-    best = jnp.full(px.shape, jnp.inf, jnp.float32)
-    for ax, ay, bx, by, valid in zip(*edges):
+
+    def nearer(e, best):
+        ax, ay, bx, by, valid = (x[e] for x in edges)
         sq = jnp.minimum(
             jnp.minimum(_closest_on_segment(px, py, ax, ay, bx, by)[2], _closest_on_segment(qx, qy, ax, ay, bx, by)[2]),
             jnp.minimum(_closest_on_segment(ax, ay, px, py, qx, qy)[2], _closest_on_segment(bx, by, px, py, qx, qy)[2]),
         )
         sq = jnp.where(_segments_cross(px, py, qx, qy, ax, ay, bx, by), 0.0, sq)
-        best = jnp.where(valid, jnp.minimum(best, sq), best)
-    return jnp.sqrt(best)
+        return jnp.where(valid, jnp.minimum(best, sq), best)
+
+    return jnp.sqrt(_loop(edges[0].shape[0], nearer, jnp.full(px.shape, jnp.inf, jnp.float32)))
 
 
 def line_of_sight(origin, targets, obstacles: Obstacles):
@@ -229,10 +242,13 @@ def line_of_sight(origin, targets, obstacles: Obstacles):
     """
     ox, oy = origin[0], origin[1]
     tx, ty = targets[..., 0], targets[..., 1]
-    blocked = jnp.zeros(tx.shape, bool)
-    for ax, ay, bx, by, valid in zip(*_flat_edges(obstacles)):
-        blocked = blocked | (valid & _segments_cross(ox, oy, tx, ty, ax, ay, bx, by))
-    return ~blocked
+    edges = _flat_edges(obstacles)
+
+    def crossed(e, blocked):
+        ax, ay, bx, by, valid = (x[e] for x in edges)
+        return blocked | (valid & _segments_cross(ox, oy, tx, ty, ax, ay, bx, by))
+
+    return ~_loop(edges[0].shape[0], crossed, jnp.zeros(tx.shape, bool))
 
 
 def lidar_scan(
@@ -250,33 +266,38 @@ def lidar_scan(
     dx, dy = jnp.cos(angle), jnp.sin(angle)  # (R,)
     ox, oy = origin[0], origin[1]
 
-    # One fused loop over the rays, the edges and discs unrolled into it with a running nearest hit (an (R, E)
-    # table reduced over its minor axis vectorises poorly under vmap, and its per-pair division is not fused).
+    # Loops over the edges and the discs, each iteration a fused pass over the rays with a running nearest hit (an
+    # (R, E) table reduced over its minor axis vectorises poorly under vmap, and its per-pair division is not fused).
     ax, ay, bx, by, valid = _flat_edges(obstacles)
     ex, ey = bx - ax, by - ay
     wx, wy = ax - ox, ay - oy
     t_num = _cross(wx, wy, ex, ey)  # (E,): the numerator of t does not depend on the ray
+
     # The nearest edge hit as a fraction best_n / best_d (best_d > 0), compared by cross-multiplication: one
     # division per ray; the chosen edge's t is its exact quotient t_num / denom (the signs flip exactly).
-    best_n = jnp.full(dx.shape, jnp.inf, jnp.float32)
-    best_d = jnp.ones(dx.shape, jnp.float32)
-    for e in range(ax.shape[0]):
+    def nearer_edge(e, best):
+        best_n, best_d = best
         denom = _cross(dx, dy, ex[e], ey[e])
         # t >= 0 and 0 <= s <= 1 tested on the numerators (times the sign of denom)
         sign, size = jnp.sign(denom), jnp.abs(denom)
         tn, sn = t_num[e] * sign, _cross(wx[e], wy[e], dx, dy) * sign
         hit = valid[e] & (size > _TINY) & (tn >= 0.0) & (sn >= 0.0) & (sn <= size) & (tn * best_d < best_n * size)
-        best_n, best_d = jnp.where(hit, tn, best_n), jnp.where(hit, size, best_d)
+        return jnp.where(hit, tn, best_n), jnp.where(hit, size, best_d)
+
+    best = (jnp.full(dx.shape, jnp.inf, jnp.float32), jnp.ones(dx.shape, jnp.float32))
+    best_n, best_d = _loop(ax.shape[0], nearer_edge, best)
     edge_range = best_n / best_d  # inf where no edge is hit
 
     mx, my = circle_pos[:, 0] - ox, circle_pos[:, 1] - oy  # (N,)
     q = mx * mx + my * my - circle_radius * circle_radius
-    circle_range = jnp.full(dx.shape, jnp.inf, jnp.float32)
-    for i in range(mx.shape[0]):
+
+    def nearer_disc(i, circle_range):
         b = dx * mx[i] + dy * my[i]
         disc = b * b - q[i]
         hit = circle_mask[i] & (q[i] > 0.0) & (b > 0.0) & (disc >= 0.0)
-        circle_range = jnp.where(hit, jnp.minimum(circle_range, b - jnp.sqrt(jnp.maximum(disc, 0.0))), circle_range)
+        return jnp.where(hit, jnp.minimum(circle_range, b - jnp.sqrt(jnp.maximum(disc, 0.0))), circle_range)
+
+    circle_range = _loop(mx.shape[0], nearer_disc, jnp.full(dx.shape, jnp.inf, jnp.float32))
 
     ranges = jnp.minimum(jnp.minimum(edge_range, circle_range), max_range)
     blocked = jnp.any(circle_mask & (q <= 0.0)) | inside(origin, obstacles)
