@@ -1,4 +1,7 @@
+import gc
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # Orthogonal initialisation runs LAPACK QR through OpenBLAS, whose worker threads spin badly when the two cores
@@ -7,6 +10,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # The suite runs with the XLA:CPU settings of the command-line tools (512-bit vectors on AVX-512 CPUs), chosen
 # here before any test starts JAX; importing tgrf_jax alone leaves XLA_FLAGS untouched.
+import pytest  # noqa: E402
+
 import tgrf_jax  # noqa: E402
 
 tgrf_jax.configure_cpu()
@@ -23,20 +28,42 @@ if TEST_XLA_OPT == "fast" and OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {OPT_FLAG}=0".strip()
 
 
-# The suite runs without the persistent compilation cache: XLA:CPU's executable serialisation, which the cache
-# runs on every compile, has aborted a test worker now and then (and reading an entry back has crashed one),
-# which fails the whole run, while sharing compiled programs between tests saved little. "off" is inherited by
-# the xdist workers and the CLI subprocesses, so nothing is written to the user's ~/.cache either. Set
-# TGRF_JAX_COMPILE_CACHE to a directory yourself to run the suite with a cache.
+# Many tests compile the same programs (the tiny training chunk, the evaluation; in-process and in CLI
+# subprocesses). They share a persistent compilation cache that lives for one pytest invocation: created empty by
+# the first process, inherited by the xdist workers and the CLI subprocesses through the environment, deleted at
+# the end, so no test depends on what an earlier invocation left and nothing is written to the user's ~/.cache.
+# A cached executable is the very program that was compiled: every number is the same as without the cache.
+# Set TGRF_JAX_COMPILE_CACHE yourself (e.g. "off") to override.
+_OWNED_CACHE = None
 
 
 def pytest_configure(config):
+    global _OWNED_CACHE
     if getattr(config.option, "loadscopereorder", False):
         config.option.loadscopereorder = False  # keep the order of pytest_collection_modifyitems below
-    os.environ.setdefault("TGRF_JAX_COMPILE_CACHE", "off")
+    if "TGRF_JAX_COMPILE_CACHE" not in os.environ:
+        _OWNED_CACHE = tempfile.mkdtemp(prefix="tgrf-jax-tests-")
+        os.environ["TGRF_JAX_COMPILE_CACHE"] = _OWNED_CACHE
     from tgrf_jax.runtime import compile_cache
 
     compile_cache.enable()
+
+
+def pytest_unconfigure(config):
+    if _OWNED_CACHE is not None:
+        shutil.rmtree(_OWNED_CACHE, ignore_errors=True)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop each module's compiled programs when it ends. Every loaded XLA:CPU executable keeps memory mappings
+    of its code, and an xdist worker that runs hundreds of tests otherwise accumulates them up to the kernel's
+    limit (vm.max_map_count, 65,530 by default), where the next compile or cache access crashes the worker."""
+    yield
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
 
 
 # Test modules, longest first (their summed --durations in CI); modules not listed follow in pytest's order.
