@@ -102,6 +102,7 @@ def test_reward_shapes_runs(tmp_path):
     assert len(list(_outputs(nb, "image/png"))) >= 7
 
 
+@pytest.mark.slow  # trains a policy and runs a tune: a training run, kept out of CI
 def test_train_and_evaluate_runs(tmp_path):
     nb = _execute(NOTEBOOK_DIR / "train_and_evaluate.ipynb", tmp_path)
     rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))

@@ -421,6 +421,7 @@ def test_tune_rows_are_done_with_their_results_and_provenance(tmp_path):
 # --------------------------------------------------------------------------------------------- end to end
 
 
+@pytest.mark.slow  # trains a tune and a random search: training runs, kept out of CI
 def test_a_shrunk_search_runs_end_to_end_and_skips_what_is_done(tmp_path):
     exp = spec_lib.load(str(write_experiment(tmp_path / "exp.yaml")))
     write_grid(tmp_path / "grid_sweep")
