@@ -36,6 +36,30 @@ def test_scenario_layouts_keep_starts_goals_and_spawns_out_of_obstacles(scenario
     assert int(np.asarray(state.obstacles_dropped).sum()) == 0  # the scenarios never need the fallback
 
 
+def test_the_intersections_cross_corridor_is_one_way_and_streams_persist():
+    env = CrowdNavEnv(dict(scenario="intersection", **SF))
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(7), 64))[1]
+    goal, active = np.asarray(state.humans.goal), np.asarray(state.humans.active)
+    across = np.abs(goal[..., 0]) > np.abs(goal[..., 1])
+    flows = [set(np.sign(goal[e, across[e] & active[e], 0]).tolist()) for e in range(goal.shape[0])]
+    assert all(len(f) == 1 for f in flows if f)  # one way in each episode
+    assert {f.pop() for f in flows if f} == {-1.0, 1.0}  # either way over episodes
+    own = ~across & active
+    assert set(np.sign(goal[..., 1][own]).tolist()) == {-1.0, 1.0}  # the robot's corridor: both ways
+    # a human at its goal is respawned on its own stream: same corridor, same direction
+    from tgrf_jax.env.scenarios.obstacle_layouts import INTERSECTION
+
+    for e in range(8):
+        layout = jax.tree_util.tree_map(lambda a, e=e: a[e], state.obstacles)
+        for j in np.flatnonzero(active[e])[:3]:
+            start, new_goal = INTERSECTION.respawn(
+                jax.random.key(int(e * 100 + j)), env.default_params, layout, state.humans.pos[e, j], goal[e, j], 4
+            )
+            axis = 0 if across[e, j] else 1
+            assert np.all(np.sign(np.asarray(new_goal)[:, axis]) == np.sign(goal[e, j, axis]))
+            assert np.all(np.abs(np.asarray(new_goal)[:, axis]) > np.abs(np.asarray(new_goal)[:, 1 - axis]))
+
+
 def test_scenario_layouts_vary_between_episodes(scenario_resets):
     name, env, obs, state = scenario_resets
     vertices = np.asarray(state.obstacles.vertices)

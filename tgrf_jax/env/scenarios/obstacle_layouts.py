@@ -170,7 +170,10 @@ DOORWAY = Scenario(lane_robot, _doorway_spawn, _doorway_new_goal, _doorway_respa
 
 # intersection: two corridors of half-width w (1.25 to 2 m) crossing at the origin, walled by four corner blocks,
 # so people coming along the cross corridor are hidden until they reach the crossing (a blind corner). The robot
-# goes straight up its corridor; two humans in three walk the cross corridor, the others the robot's.
+# goes straight up its corridor; two humans in three walk the cross corridor, the others the robot's. Four streams
+# meeting in the crossing (both corridors two-way) lock among ORCA humans, each waiting on the next, and the queues
+# reach back along the arms; so the cross corridor is one-way, its direction drawn per episode, and a human who
+# reaches their goal walks their own stream again.
 def _intersection_layout(key, params, robot, tries):
     w = uniform(key, (), 1.25, 2.0)
     r = params.circle_radius
@@ -196,9 +199,11 @@ def _arm_pair(key, params, layout, shape, across, direction):
 
 
 def _intersection_spawn(key, params, layout, n, tries):
-    k_pair, k_dir = jax.random.split(key)
+    k_pair, k_dir, k_flow = jax.random.split(key, 3)
     across = jnp.broadcast_to((jnp.arange(n) % 3 != 2)[:, None], (n, tries))
-    direction = jnp.where(uniform(k_dir, (n, 1)) < 0.5, -1.0, 1.0) * jnp.ones((n, tries))
+    own = jnp.where(uniform(k_dir, (n, 1)) < 0.5, -1.0, 1.0)  # the robot's corridor: both ways
+    flow = jnp.where(uniform(k_flow, ()) < 0.5, -1.0, 1.0)  # the cross corridor: one way
+    direction = jnp.where(across, flow, own) * jnp.ones((n, tries))
     start, goal = _arm_pair(k_pair, params, layout, (n, tries), across, direction)
     # spread the starts along the corridor so the crossing is busy from the first step
     t = uniform(jax.random.fold_in(key, 1), (n, tries, 1))
@@ -214,11 +219,10 @@ def _intersection_new_goal(key, params, layout, humans, tries):
 
 
 def _intersection_respawn(key, params, layout, pos, goal, tries):
-    k_pair, k_kind = jax.random.split(key)
-    u = uniform(k_kind, (2,))
-    across = jnp.broadcast_to(u[0] < 2.0 / 3.0, (tries,))
-    direction = jnp.where(u[1] < 0.5, -1.0, 1.0) * jnp.ones((tries,))
-    return _arm_pair(k_pair, params, layout, (tries,), across, direction)
+    # the same stream again: the corridor and direction of the goal just reached
+    across = jnp.abs(goal[0]) > jnp.abs(goal[1])
+    direction = jnp.sign(jnp.where(across, goal[0], goal[1])) * jnp.ones((tries,))
+    return _arm_pair(key, params, layout, (tries,), jnp.broadcast_to(across, (tries,)), direction)
 
 
 INTERSECTION = Scenario(
