@@ -35,10 +35,16 @@ if TEST_XLA_OPT == "fast" and OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
 # A cached executable is the very program that was compiled: every number is the same as without the cache.
 # Set TGRF_JAX_COMPILE_CACHE yourself (e.g. "off") to override.
 _OWNED_CACHE = None
+# The recordings (`tgrf-data fetch`) are looked up in a data directory of the suite's own, empty unless a test
+# fills it: a user's downloaded recordings change no test.
+_OWNED_DATA = None
 
 
 def pytest_configure(config):
-    global _OWNED_CACHE
+    global _OWNED_CACHE, _OWNED_DATA
+    if _OWNED_DATA is None:
+        _OWNED_DATA = tempfile.mkdtemp(prefix="tgrf-jax-tests-data-")
+        os.environ["TGRF_JAX_DATA"] = _OWNED_DATA
     if getattr(config.option, "loadscopereorder", False):
         config.option.loadscopereorder = False  # keep the order of pytest_collection_modifyitems below
     if "TGRF_JAX_COMPILE_CACHE" not in os.environ:
@@ -50,8 +56,9 @@ def pytest_configure(config):
 
 
 def pytest_unconfigure(config):
-    if _OWNED_CACHE is not None:
-        shutil.rmtree(_OWNED_CACHE, ignore_errors=True)
+    for owned in (_OWNED_CACHE, _OWNED_DATA):
+        if owned is not None:
+            shutil.rmtree(owned, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")

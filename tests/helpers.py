@@ -168,3 +168,30 @@ def flip_a_bit(step_dir):
         raw[offset] ^= 0x10
     data.write_bytes(bytes(raw))
     raise AssertionError(f"no bit of {data} could be flipped without making the step unreadable")
+
+
+def write_catalogue_recordings(data_dir) -> None:
+    """Small stand-ins for every file of the ETH/UCY catalogue under `data_dir`, each at its catalogue path, in
+    its format and frame spacing: three people crossing for 20 s, annotated every 0.4 s (per file a little
+    shifted, so the files differ)."""
+    import pathlib
+
+    from tgrf_jax.pedestrians import ETH_UCY
+
+    walkers = (((-10.0, 0.0), (1.2, 0.0)), ((0.0, -10.0), (0.0, 1.0)), ((10.0, 3.0), (-1.0, 0.1)))
+    for i, entry in enumerate(ETH_UCY):
+        spf = entry.seconds_per_frame
+        every = round(0.4 / spf)
+        frames = range(0, round(20.0 / spf) + 1, every)
+        lines = []
+        for f in frames:
+            t = f * spf
+            for pid, ((x0, y0), (vx, vy)) in enumerate(walkers, start=1):
+                x, y = x0 + vx * t + 0.1 * i, y0 + vy * t
+                if entry.format == "obsmat":  # frame id x z y vx vz vy, scientific notation, CRLF
+                    lines.append("".join(f"{v:15.7e}" for v in (f, pid, x, 0.0, y, vx, 0.0, vy)) + "\r\n")
+                else:
+                    lines.append(f"{f:.1f}\t{pid:.1f}\t{x:.10g}\t{y:.10g}\n")
+        path = pathlib.Path(data_dir) / entry.name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes("".join(lines).encode())

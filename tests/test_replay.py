@@ -215,6 +215,44 @@ def test_bad_replay_configs(tmp_path, recording):
     env.default_params.validate(env.config)
 
 
+def test_replay_weights_choose_the_entries_played(tmp_path, recording):
+    # two entries: the module's recording, and a copy twice as long (its people walk on for another 44 frames)
+    longer = write_four_column(tmp_path / "long.txt", PEOPLE + [(f + 45, p + 10, x, y) for f, p, x, y in PEOPLE])
+    files = [{"path": str(recording), "seconds_per_frame": SPF}, {"path": str(longer), "seconds_per_frame": SPF}]
+    reset = lambda env, params: (
+        jax.jit(jax.vmap(env.reset_env, in_axes=(0, None)))(jax.random.split(jax.random.PRNGKey(3), 400), params)[
+            1
+        ].replay.scene
+    )
+    env = replay_env(recording, replay_files=files)
+    lengths = env.replay.lengths - 1
+    np.testing.assert_allclose(env.default_params.replay_weights, lengths)  # None: every recorded moment alike
+    share = float(np.mean(np.asarray(reset(env, env.default_params)) == 1))
+    assert abs(share - lengths[1] / lengths.sum()) < 0.08, share
+    for weights, played in (((0.0, 1.0), {1}), ((1.0, 0.0), {0})):
+        chosen = replay_env(recording, replay_files=files, replay_weights=list(weights))
+        assert set(np.asarray(reset(chosen, chosen.default_params)).tolist()) == played
+        # the weights are traced: the first env's program plays the same entries with them as params
+        params = env.default_params.replace(replay_weights=jnp.asarray(weights, jnp.float32))
+        assert set(np.asarray(reset(env, params)).tolist()) == played
+    base = {"scenario": "replay", "human_policy": "replay", "replay_files": files}
+    for bad, message in (
+        ([1.0], r"env\.replay_weights has 1 value\(s\); allowed: 2 .* one per entry of env\.replay_files"),
+        ([1.0, -1.0], "env.replay_weights = .* has a negative or non-finite weight"),
+        ([0.0, 0.0], "env.replay_weights = .* are all zero"),
+        (["many", 1.0], r"env\.replay_weights\[0\]"),
+        (3.0, "env.replay_weights = 3.0 must be a list of 2 numbers"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            EnvConfig.from_dict({**base, "replay_weights": bad})
+    with pytest.raises(ConfigError, match="env.replay_weights = .* is given but no env.replay_files"):
+        EnvConfig.from_dict({"replay_weights": [1.0]})
+    with pytest.raises(ConfigError, match=r"env\.replay_weights has 3 value\(s\); allowed: 2"):
+        env.default_params.replace(replay_weights=jnp.ones(3)).validate(env.config)
+    config = TrainConfig.from_dict({"env": {**base, "replay_weights": [1, 2]}})
+    assert TrainConfig.from_dict(__import__("yaml").safe_load(config.to_yaml())) == config
+
+
 def test_envs_share_recordings_until_a_file_changes(tmp_path):
     path = write_four_column(tmp_path / "walk.txt", PEOPLE)
     a, b = replay_env(path), replay_env(path)

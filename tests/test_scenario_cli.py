@@ -4,10 +4,11 @@ import json
 import pathlib
 
 import pytest
-from helpers import CompileCounter
+from helpers import CompileCounter, write_catalogue_recordings
 
 from tgrf_jax.cli import eval_main, render_main, train_main
-from tgrf_jax.config import SCENARIOS
+from tgrf_jax.config import SCENARIOS, ConfigError, TrainConfig
+from tgrf_jax.pedestrians import FOLDS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -69,6 +70,8 @@ def test_suite_writes_its_table_and_thumbnails(tmp_path, capsys):
     assert sorted(p.stem for p in (out / "thumbnails").glob("*.png")) == sorted(SCENARIOS)
     printed = capsys.readouterr().out
     assert f"[{len(SCENARIOS) * 4}/{len(SCENARIOS) * 4}]" in printed
+    assert "suite: the real scenes (eth, hotel, univ, zara1, zara2) are left out" in printed
+    assert "tgrf-data fetch eth-ucy" in printed
     assert printed.index("suite: compiling the evaluation program") < printed.index(f"[1/{len(SCENARIOS) * 4}]")
     # the suite is not overwritten without a word: the second run is refused before anything is played
     table = (out / "suite.md").read_text()
@@ -78,3 +81,38 @@ def test_suite_writes_its_table_and_thumbnails(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"tgrf-eval: error: --suite {str(out)!r} holds an earlier suite (suite.md, suite.csv)" in err
     assert "--overwrite to replace it" in err
+
+
+def test_suite_plays_the_real_scenes_when_the_recordings_are_there(tmp_path, monkeypatch, capsys):
+    from tgrf_jax.cli.suite import RECORDED, run_suite
+    from tgrf_jax.policies import baseline
+
+    config = TrainConfig.from_yaml(TINY, ["env.time_limit=15"])
+    with pytest.raises(ConfigError, match="the suite's real scenes need the ETH/UCY recordings; 6 are missing"):
+        run_suite(config, {"straight": baseline("straight")}, tmp_path / "none", episodes=2, seed=0, real=True)
+    write_catalogue_recordings(tmp_path / "data" / "pedestrians")
+    monkeypatch.setenv("TGRF_JAX_DATA", str(tmp_path / "data"))
+    out = tmp_path / "suite"
+    policies = {"orca": baseline("orca")}
+    rows = run_suite(config, policies, out, episodes=3, seed=0, sizes=(5,), scenarios=("circle_crossing",))
+    real = [r for r in rows if r["humans"] == RECORDED]
+    assert [(r["scenario"], r["policy"]) for r in real] == [(f, p) for f in FOLDS for p in policies]
+    assert all(r["n_episodes"] == 3 for r in real)
+    table = (out / "suite.md").read_text()
+    assert "| zara2 | recorded | orca |" in table
+    assert sorted(p.stem for p in (out / "thumbnails").glob("*.png")) == sorted(("circle_crossing", *FOLDS))
+    # the same seed plays the same episodes: a second suite's real rows are equal
+    again = run_suite(
+        config,
+        policies,
+        tmp_path / "again",
+        episodes=3,
+        seed=0,
+        sizes=(5,),
+        scenarios=("circle_crossing",),
+        thumbnails=False,
+    )
+    assert [r for r in again if r["humans"] == RECORDED] == real
+    # a fold plays its own file only: its episodes differ from the next fold's
+    assert len({r["min_dist_human"] for r in real}) > 1
+    assert any(r["success_rate"] > 0 for r in real)

@@ -19,7 +19,13 @@ import yaml
 
 from tgrf_jax import reward as reward_lib
 from tgrf_jax import scenario_registry as registry
-from tgrf_jax.env_rules import check_detection_latency, check_env_relations, check_scenario_weights, scenario_list
+from tgrf_jax.env_rules import (
+    check_detection_latency,
+    check_env_relations,
+    check_scenario_weights,
+    check_weights,
+    scenario_list,
+)
 from tgrf_jax.fields import (  # ConfigError, apply_overrides, load_yaml: re-exported with the config classes
     ConfigError,
     _coerce,
@@ -307,6 +313,12 @@ class EnvConfig:
         doc="mix: relative frequency of each scenario of env.mix_scenarios, in its order (None: equal); finite, "
         "non-negative, at least one positive and a finite sum, in float32",
     )
+    replay_weights: tuple | None = traced(
+        None,
+        doc="replay: relative frequency of each entry of env.replay_files, in its order, an entry's files drawn in "
+        "proportion to their recorded length (None: every entry in proportion to its recorded length, so every "
+        "recorded moment is equally likely); rules as env.scenario_weights",
+    )
     dt: float = traced(0.25, low=MIN_DT, high=1.0, doc="seconds per step")
     time_limit: float = traced(
         50.0, low=0.0, high=MAX_EPISODE_SECONDS, low_inclusive=False, doc="seconds; reaching it truncates"
@@ -479,6 +491,11 @@ class EnvConfig:
                 "social_force (which also follow the recordings, reactively, in a mix)"
             )
         if self.replay_files is None:
+            if self.replay_weights is not None:
+                raise ConfigError(
+                    f"env.replay_weights = {_show(self.replay_weights)} is given but no env.replay_files; allowed: "
+                    "null (or one weight per entry of env.replay_files)"
+                )
             if plays:
                 raise ConfigError(
                     "env.replay_files is required with the replay scenario: a list of catalogue names (e.g. "
@@ -491,15 +508,33 @@ class EnvConfig:
                 "(or env.scenario: replay, or a mix with replay)"
             )
         object.__setattr__(self, "replay_files", replay_file_list(self.replay_files))
+        if self.replay_weights is not None:
+            weights, count = self.replay_weights, len(self.replay_files)
+            if isinstance(weights, (str, bytes)) or not hasattr(weights, "__iter__"):
+                raise ConfigError(
+                    f"env.replay_weights = {_show(weights)} must be a list of {count} numbers (one per entry of "
+                    "env.replay_files)"
+                )
+            weights = tuple(_coerce(w, 0.0, f"env.replay_weights[{i}]") for i, w in enumerate(weights))
+            object.__setattr__(self, "replay_weights", weights)
+            check_weights(weights, "env.replay_weights", "entry of env.replay_files", self.replay_entry_names)
 
     def resolved(self, name: str):
         """A traced field's value as `EnvParams` carries it (the active-human bounds default to the capacity)."""
         value = getattr(self, name)
         if value is None and name in ("active_humans_min", "active_humans_max"):
             return self.num_humans
+        if value is None and name == "replay_weights":
+            # placeholder: the env replaces it with the entries' recorded lengths, which it alone knows
+            return (1.0,) * len(self.replay_files or ((),))
         if value is None and name == "scenario_weights":
             return (1.0,) * len(self.drawn_scenarios)
         return value
+
+    @property
+    def replay_entry_names(self) -> tuple[str, ...]:
+        """The entries of env.replay_files as messages name them: a catalogue name or a file's path."""
+        return tuple(f if isinstance(f, str) else dict(f)["path"] for f in self.replay_files or ())
 
     @property
     def drawn_scenarios(self) -> tuple[str, ...]:
@@ -747,7 +782,7 @@ class TrainConfig:
     def to_dict(self) -> dict:
         data = dataclasses.asdict(self)
         env = data["env"]
-        for name in ("scenario_weights", "mix_scenarios"):  # lists, as YAML writes and reads them
+        for name in ("scenario_weights", "replay_weights", "mix_scenarios"):  # lists, as YAML writes and reads them
             if env[name] is not None:
                 env[name] = list(env[name])
         if env["obstacles"] is not None:

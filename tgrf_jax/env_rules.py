@@ -14,7 +14,7 @@ import numpy as np
 from tgrf_jax import scenario_registry as registry
 from tgrf_jax.fields import ConfigError, _show, first_where
 
-__all__ = ["check_detection_latency", "check_env_relations", "check_scenario_weights", "scenario_list"]
+__all__ = ["check_detection_latency", "check_env_relations", "check_scenario_weights", "check_weights", "scenario_list"]
 
 _F32 = np.finfo(np.float32)
 
@@ -79,25 +79,31 @@ def check_detection_latency(latency, capacity: int) -> None:
 
 def check_scenario_weights(weights, drawn_scenarios=None) -> None:
     """One weight per scenario of the mix (the last axis; leading axes: a batch), as the env draws with them in
-    float32: each finite and non-negative, at least one positive and their sum finite. Positive means a normal
-    float32 (XLA flushes smaller numbers to zero) and finite means within float32's range (a config's 1e39 is
-    float32's inf). `drawn_scenarios` None: any length."""
+    float32 (`check_weights`). `drawn_scenarios` None: any length."""
+    check_weights(weights, "env.scenario_weights", "scenario of the mix", drawn_scenarios)
+
+
+def check_weights(weights, field: str, each: str, labels=None) -> None:
+    """Relative frequencies (the last axis; leading axes: a batch), one per `each` (named by `labels`, whose
+    number they must match), as the env draws with them in float32: each finite and non-negative, at least one
+    positive and their sum finite. Positive means a normal float32 (XLA flushes smaller numbers to zero) and
+    finite means within float32's range (a config's 1e39 is float32's inf). `labels` None: any length."""
     w = np.asarray(weights, np.float64)
-    names = drawn_scenarios or ()
-    count = len(names) if drawn_scenarios is not None else (w.shape[-1] if w.ndim else 1)
+    names = labels or ()
+    count = len(names) if labels is not None else (w.shape[-1] if w.ndim else 1)
     allowed = (
-        f"allowed: {count} finite, non-negative numbers, one per scenario of the mix"
+        f"allowed: {count} finite, non-negative numbers, one per {each}"
         + (f" ({', '.join(names)})" if names else "")
         + f", at least one of them positive (>= {_F32.tiny:.3g}) and their sum finite (<= {_F32.max:.3g}, float32)"
     )
     if w.ndim == 0 or w.shape[-1] != count:
-        raise ConfigError(f"env.scenario_weights has {1 if w.ndim == 0 else w.shape[-1]} value(s); {allowed}")
+        raise ConfigError(f"{field} has {1 if w.ndim == 0 else w.shape[-1]} value(s); {allowed}")
     shown = np.vectorize(lambda x: float(f"{x:.6g}"), otypes=[float])(w).tolist()
     if not np.all(np.isfinite(w) & (w >= 0)):
-        raise ConfigError(f"env.scenario_weights = {shown} has a negative or non-finite weight; {allowed}")
+        raise ConfigError(f"{field} = {shown} has a negative or non-finite weight; {allowed}")
     if np.any(w > _F32.max):
-        raise ConfigError(f"env.scenario_weights = {shown} has a weight beyond float32's range (inf); {allowed}")
+        raise ConfigError(f"{field} = {shown} has a weight beyond float32's range (inf); {allowed}")
     if np.any(w.sum(-1) > _F32.max):
-        raise ConfigError(f"env.scenario_weights = {shown} sum beyond float32's range; {allowed}")
+        raise ConfigError(f"{field} = {shown} sum beyond float32's range; {allowed}")
     if np.any(w.max(-1) < _F32.tiny):
-        raise ConfigError(f"env.scenario_weights = {shown} are all zero (in float32); {allowed}")
+        raise ConfigError(f"{field} = {shown} are all zero (in float32); {allowed}")

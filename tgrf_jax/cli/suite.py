@@ -5,6 +5,11 @@ and those with static obstacles) with one-hot `scenario_weights` (which plays ex
 and the crowd size set by `active_humans_min = active_humans_max`, all traced params. The capacity is the largest
 size; a trained MLP keeps the capacity it was trained with (its input has that shape), and larger crowds are left
 out of its table, while attention networks (HH Attn, DS-RNN) play every size with the same weights.
+
+When the ETH/UCY recordings are in the user data directory (`tgrf-data fetch eth-ucy`), the five real scenes of
+the leave-one-scene-out benchmark follow as rows (eth, hotel, univ, zara1, zara2: each fold's test files), played
+by a second compiled evaluation: `scenario: replay` over the five folds with one-hot `replay_weights`, people
+moving exactly along their recordings, no augmentation; the capacity's slots play the people nearest the robot.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import pathlib
 import time
 
 SUITE_SIZES = (5, 10, 20, 30)
+RECORDED = "recorded"  # the humans column of the real scenes' rows: the people of the recording
 # Columns of the Markdown table (the CSV holds every metric).
 TABLE_COLUMNS = (
     ("success_rate", "SR", "{:.1%}"),
@@ -34,19 +40,53 @@ TABLE_COLUMNS = (
 )
 
 
-def suite_env_config(env_config, capacity: int):
-    """The suite's env: every scenario selectable by weights, `capacity` human slots."""
+def suite_env_config(env_config, capacity: int, scenarios=None):
+    """The suite's env: every scenario (or those of `scenarios`) selectable by weights, `capacity` human slots."""
     from tgrf_jax.config import SCENARIOS
 
     return dataclasses.replace(
         env_config,
         scenario="mix",
-        mix_scenarios=SCENARIOS,
+        mix_scenarios=SCENARIOS if scenarios is None else tuple(scenarios),
         num_humans=capacity,
         active_humans_min=None,
         active_humans_max=None,
         scenario_weights=None,
     )
+
+
+def real_env_config(env_config, capacity: int):
+    """The suite's env for the real scenes: every fold's test files selectable by `replay_weights`, the recorded
+    people played unchanged (no augmentation, not reacting), `capacity` slots holding the people nearest the robot;
+    the recordings have no walls of their own, so the config's obstacles are left out."""
+    from tgrf_jax.pedestrians import FOLDS
+
+    return dataclasses.replace(
+        env_config,
+        scenario="replay",
+        mix_scenarios=None,
+        scenario_weights=None,
+        replay_files=FOLDS,
+        replay_weights=None,
+        replay_augment=False,
+        replay_overflow="nearest",
+        human_policy="replay",
+        num_humans=capacity,
+        active_humans_min=None,
+        active_humans_max=None,
+        obstacles=None,
+    )
+
+
+def missing_recordings(data_dir=None) -> list[str]:
+    """The files of the real scenes' rows that are not in the data directory (all present: [])."""
+    from tgrf_jax.pedestrians import ETH_UCY, FOLDS
+
+    return [
+        str(e.spec(data_dir).path)
+        for e in ETH_UCY
+        if e.fold in FOLDS and not pathlib.Path(e.spec(data_dir).path).is_file()
+    ]
 
 
 def run_suite(
@@ -59,53 +99,82 @@ def run_suite(
     sizes=SUITE_SIZES,
     capacity=None,
     thumbnails: bool = True,
+    real: bool | None = None,
+    scenarios=None,
     log=print,
 ) -> list[dict]:
-    """Evaluate each of `policies` (name -> Policy) on every scenario x size; writes `suite.md`, `suite.csv` and
-    `thumbnails/<scenario>.png` under `out_dir` and returns the rows."""
+    """Evaluate each of `policies` (name -> Policy) on every scenario (or those of `scenarios`) x size, and on the
+    real scenes (`real`: None plays them when the recordings are in the data directory); writes `suite.md`,
+    `suite.csv` and `thumbnails/<scenario>.png` under `out_dir` and returns the rows."""
     import jax
     import jax.numpy as jnp
 
     from tgrf_jax.config import SCENARIOS
     from tgrf_jax.env import CrowdNavEnv
     from tgrf_jax.evaluate import evaluate
+    from tgrf_jax.pedestrians import FOLDS
 
+    scenarios = SCENARIOS if scenarios is None else tuple(scenarios)
     capacity = max(sizes) if capacity is None else capacity
-    env = CrowdNavEnv(suite_env_config(config.env, capacity), config.reward)
+    env = CrowdNavEnv(suite_env_config(config.env, capacity, scenarios), config.reward)
     base = env.default_params
     played = [n for n in sizes if n <= capacity]
     skipped = [n for n in sizes if n > capacity]
     if skipped:
         log(f"suite: crowd sizes {skipped} exceed the policy's {capacity} human slots; left out")
+    missing = missing_recordings()
+    if real is None:
+        real = not missing
+        if missing:
+            log(
+                f"suite: the real scenes ({', '.join(FOLDS)}) are left out: {len(missing)} of their recordings are not "
+                f"in the data directory (first: {missing[0]}); `tgrf-data fetch eth-ucy` downloads them"
+            )
+    elif real and missing:
+        from tgrf_jax.config import ConfigError
+
+        raise ConfigError(
+            f"the suite's real scenes need the ETH/UCY recordings; {len(missing)} are missing (first: {missing[0]}): "
+            "`tgrf-data fetch eth-ucy` downloads them"
+        )
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    total, done = len(SCENARIOS) * len(played) * len(policies), 0
+    total = (len(scenarios) * len(played) + (len(FOLDS) if real else 0)) * len(policies)
+    done = 0
     log("suite: compiling the evaluation program (one per policy, shared by every row), then playing the rows ...")
     t0 = time.perf_counter()
-    for s, name in enumerate(SCENARIOS):
-        weights = jnp.zeros(len(SCENARIOS), jnp.float32).at[s].set(1.0)
-        for n in played:
-            params = params_for(base, weights, n)
-            for label, policy in policies.items():
-                result = evaluate(env, policy, jax.random.key(seed), episodes, params=params)
-                done += 1
-                rows.append(dict(scenario=name, humans=n, policy=label, **result.to_dict()))
-                log(
-                    f"[{done}/{total}] {name:22s} {n:3d} humans  {label:10s} SR {result.success_rate:6.1%}  "
-                    f"coll. {result.collision_rate:6.1%}  ({time.perf_counter() - t0:.0f} s)"
-                )
-        if thumbnails:
-            _thumbnail(
-                env,
-                next(iter(policies.values())),
-                params_for(base, weights, min(10, capacity)),
-                seed,
-                out / "thumbnails" / f"{name}.png",
-                name,
+
+    def play(env, params, scenario, humans):
+        nonlocal done
+        for label, policy in policies.items():
+            result = evaluate(env, policy, jax.random.key(seed), episodes, params=params)
+            done += 1
+            rows.append(dict(scenario=scenario, humans=humans, policy=label, **result.to_dict()))
+            log(
+                f"[{done}/{total}] {scenario:22s} {humans:>8} humans  {label:10s} SR {result.success_rate:6.1%}  "
+                f"coll. {result.collision_rate:6.1%}  ({time.perf_counter() - t0:.0f} s)"
             )
+
+    def thumbnail(env, params, name):
+        if thumbnails:
+            _thumbnail(env, next(iter(policies.values())), params, seed, out / "thumbnails" / f"{name}.png", name)
+
+    for s, name in enumerate(scenarios):
+        weights = jnp.zeros(len(scenarios), jnp.float32).at[s].set(1.0)
+        for n in played:
+            play(env, params_for(base, weights, n), name, n)
+        thumbnail(env, params_for(base, weights, min(10, capacity)), name)
+    if real:
+        log("suite: the real scenes: compiling their evaluation program ...")
+        real_env = CrowdNavEnv(real_env_config(config.env, capacity), config.reward)
+        for s, name in enumerate(FOLDS):
+            params = real_env.default_params.replace(replay_weights=jnp.zeros(len(FOLDS), jnp.float32).at[s].set(1.0))
+            play(real_env, params, name, RECORDED)
+            thumbnail(real_env, params, name)
     _write_tables(rows, out)
-    log(f"wrote {out / 'suite.md'}, {out / 'suite.csv'}" + (f" and {len(SCENARIOS)} thumbnails" if thumbnails else ""))
+    pictures = len(scenarios) + (len(FOLDS) if real else 0)
+    log(f"wrote {out / 'suite.md'}, {out / 'suite.csv'}" + (f" and {pictures} thumbnails" if thumbnails else ""))
     return rows
 
 

@@ -149,6 +149,8 @@ class CrowdNavEnv:
     @property
     def default_params(self) -> EnvParams:
         params = EnvParams.from_config(self.config, self.reward_config.params())
+        if self.replay is not None and self.config.replay_weights is None:
+            params = params.replace(replay_weights=jnp.asarray(self.replay.entry_lengths))
         if self.config.predictor == "gst":
             params = params.replace(predictor=gst_weights.for_env(self.config))
         return params

@@ -71,8 +71,9 @@ class ReplayData:
     - ``track`` (S, T, K) int32: the track a column holds at a step (its index in the scene), -1 where empty;
     - ``last`` (S, P, 2) float32: each track's last position (where the person goes: the humans' goal);
     - ``lengths`` (S,) int32: grid steps of each scene; ``walked`` (S, W, 2) and ``num_walked`` (S,): positions
-      people walked on; ``dt``: the grid step (s); ``sources``: the files; ``nearest``: K exceeds the human slots
-      and the slots play the people nearest the robot.
+      people walked on; ``entry`` (S,) int32: the entry of env.replay_files a scene comes from; ``dt``: the grid
+      step (s); ``sources``: the files; ``nearest``: K exceeds the human slots and the slots play the people
+      nearest the robot.
     """
 
     positions: np.ndarray
@@ -81,6 +82,7 @@ class ReplayData:
     lengths: np.ndarray
     walked: np.ndarray
     num_walked: np.ndarray
+    entry: np.ndarray
     dt: float
     sources: tuple[str, ...]
     nearest: bool
@@ -89,18 +91,23 @@ class ReplayData:
     def num_columns(self) -> int:
         return int(self.track.shape[2])
 
+    @property
+    def entry_lengths(self) -> np.ndarray:
+        """(E,) float32: the start steps each entry of env.replay_files offers (its scenes' lengths less one): the
+        entries' weights that make every recorded moment equally likely (env.replay_weights None)."""
+        return np.bincount(self.entry, weights=self.lengths - 1).astype(np.float32)
 
-def resolve(files) -> list[tuple[str, RecordingSpec]]:
-    """`env.replay_files` (as the config normalises it) as (the entry's field name, spec) pairs: catalogue names
-    are looked up in the user data directory (`tgrf_jax.pedestrians.default_data_dir`)."""
+
+def resolve(files) -> list[tuple[int, RecordingSpec]]:
+    """`env.replay_files` (as the config normalises it) as (the entry's index, spec) pairs, one per file: catalogue
+    names are looked up in the user data directory (`tgrf_jax.pedestrians.default_data_dir`)."""
     out = []
     for i, item in enumerate(files):
-        name = f"env.replay_files[{i}]"
         if isinstance(item, str):
             for entry in catalogue_entries(item):
-                out.append((name, entry.spec()))
+                out.append((i, entry.spec()))
         else:
-            out.append((name, RecordingSpec(**dict(item))))
+            out.append((i, RecordingSpec(**dict(item))))
     return out
 
 
@@ -140,21 +147,23 @@ def assign_columns(mask: np.ndarray) -> tuple[np.ndarray, int]:
     return columns, len(ends)
 
 
-def _stat(name: str, spec: RecordingSpec) -> tuple:
-    """What the cache of packed recordings is keyed on for one file: its spec, size and modification time (an
-    edited file is read again)."""
+def _stat(index: int, spec: RecordingSpec) -> tuple:
+    """What the cache of packed recordings is keyed on for one file: its entry, spec, size and modification time
+    (an edited file is read again)."""
+    name = f"env.replay_files[{index}]"
     try:
         info = pathlib.Path(spec.path).stat()
     except OSError:
         hint = " (fetch the catalogue's recordings with `tgrf-data fetch eth-ucy`)"
         known = str(spec.path).startswith(str(default_data_dir()))
         raise ConfigError(f"{name}: {spec.path}: no such file{hint if known else ''}") from None
-    return name, spec, info.st_size, info.st_mtime_ns
+    return index, spec, info.st_size, info.st_mtime_ns
 
 
 def _load_scenes(files: tuple, dt: float):
     scenes = []
-    for name, spec, _, _ in files:
+    for index, spec, _, _ in files:
+        name = f"env.replay_files[{index}]"
         try:
             scene = load(spec, dt=dt)
         except RecordingError as e:
@@ -201,7 +210,8 @@ def _packed(files: tuple, dt: float, num_humans: int, overflow: str) -> ReplayDa
         num_walked[i] = len(keep)
     lengths = np.asarray([scene.num_steps for _, scene in scenes], np.int32)
     sources = tuple(scene.source for _, scene in scenes)
-    return ReplayData(positions, track, last, lengths, walked, num_walked, float(dt), sources, k > num_humans)
+    entry = np.asarray([index for index, *_ in files], np.int32)
+    return ReplayData(positions, track, last, lengths, walked, num_walked, entry, float(dt), sources, k > num_humans)
 
 
 def load_data(config: EnvConfig) -> ReplayData:
@@ -209,7 +219,7 @@ def load_data(config: EnvConfig) -> ReplayData:
     envs of one config share them); raises ConfigError naming
     the entry of env.replay_files and the file for a missing or malformed file and for a crowd that does not fit
     the human slots."""
-    files = tuple(_stat(name, spec) for name, spec in resolve(config.replay_files))
+    files = tuple(_stat(index, spec) for index, spec in resolve(config.replay_files))
     return _packed(files, float(config.dt), config.num_humans, config.replay_overflow)
 
 
@@ -276,7 +286,10 @@ def reset(key, data: ReplayData, params: EnvParams, config: EnvConfig, radius, v
     k_scene, k_start, k_angle, k_flip, k_shift, k_robot = jax.random.split(key, 6)
     lengths = jnp.asarray(data.lengths)
     usable = (lengths - 1).astype(jnp.float32)  # start steps 0 .. length - 2 leave at least one step to play
-    edges = jnp.cumsum(usable)
+    # a scene's share of its entry's weight is its share of the entry's start steps
+    entry = jnp.asarray(data.entry)
+    weights = params.replay_weights[entry] * usable / jnp.asarray(data.entry_lengths)[entry]
+    edges = jnp.cumsum(weights)
     scene = jnp.minimum(jnp.sum(edges <= uniform(k_scene, ()) * edges[-1]), lengths.shape[0] - 1).astype(jnp.int32)
     start = jnp.minimum(jnp.floor(uniform(k_start, ()) * usable[scene]), usable[scene] - 1).astype(jnp.int32)
     if config.replay_augment:

@@ -10,7 +10,7 @@ from flax import struct
 
 from tgrf_jax.config import EnvConfig, RewardConfig
 from tgrf_jax.env.obstacles import Obstacles
-from tgrf_jax.env_rules import check_detection_latency, check_env_relations, check_scenario_weights
+from tgrf_jax.env_rules import check_detection_latency, check_env_relations, check_scenario_weights, check_weights
 from tgrf_jax.fields import ConfigError, check_traced, concrete, first_where, traced_names, traced_pytree, traced_values
 from tgrf_jax.reward import RewardParams, RewardTerms
 
@@ -40,6 +40,12 @@ class _EnvParamsMethods:
         returns the params."""
         # the weights first: their rule is more than a range (check_traced would only say they must be finite)
         check_scenario_weights(concrete(self.scenario_weights, "env.scenario_weights"))
+        check_weights(
+            concrete(self.replay_weights, "env.replay_weights"),
+            "env.replay_weights",
+            "entry of env.replay_files",
+            None if config is None or config.replay_files is None else config.replay_entry_names,
+        )
         check_traced(self, EnvConfig, "env")
         check_env_relations({n: concrete(getattr(self, n), f"env.{n}") for n in traced_names(EnvConfig)})
         if config is not None:
