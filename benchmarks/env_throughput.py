@@ -15,6 +15,8 @@ const_vel against gst).
     python -m benchmarks.env_throughput --quick --out bench_results/env_quick.json
     python -m benchmarks.env_throughput --out bench_results/env_full.json
     python -m benchmarks.env_throughput --gst-only --out bench_results/env_gst.json
+    python -m benchmarks.env_throughput --obstacles --out bench_results/env_obstacles.json
+    python -m benchmarks.env_throughput --replay eth-ucy --out bench_results/env_replay.json
 """
 
 from __future__ import annotations
@@ -199,48 +201,57 @@ def breakdown(policy: str, num_humans: int, batch: int, repeats: int, extra: dic
     return out
 
 
+def replay_rows(files: list[str]) -> tuple:
+    """`--replay`: recorded people in 80 slots (students001 shows up to 75 at once), walking their recordings or
+    steered by ORCA around each other and the robot, beside the paper's 20 ORCA humans and ORCA with 80."""
+    replay = {"scenario": "replay", "replay_files": files, "num_humans": 80}
+    return (
+        ("circle_crossing, 20 ORCA humans", "orca", 20, {}),
+        ("replay, 80 slots, recorded", "replay", 80, replay),
+        ("replay, 80 slots, reactive ORCA", "orca", 80, {**replay, "robot_visible": True}),
+        ("circle_crossing, 80 ORCA humans", "orca", 80, {}),
+    )
+
+
 OBSTACLE_ROWS = (
-    ("open space", {}),
-    ("open space + LiDAR 180", {"lidar_rays": 180}),
-    ("random_obstacles", {"scenario": "random_obstacles"}),
-    ("random_obstacles + LiDAR 180", {"scenario": "random_obstacles", "lidar_rays": 180}),
-    ("random_obstacles, no routing", {"scenario": "random_obstacles", "human_routing": False}),
+    ("open space", "orca", 20, {}),
+    ("open space + LiDAR 180", "orca", 20, {"lidar_rays": 180}),
+    ("random_obstacles", "orca", 20, {"scenario": "random_obstacles"}),
+    ("random_obstacles + LiDAR 180", "orca", 20, {"scenario": "random_obstacles", "lidar_rays": 180}),
+    ("random_obstacles, no routing", "orca", 20, {"scenario": "random_obstacles", "human_routing": False}),
 )
 
 
-def obstacle_costs(mesh, out) -> None:
-    """`--obstacles`: the env step's rate with obstacles and a LiDAR against the open space, and with the humans'
-    routing switched off, in one run."""
+def compare_envs(mesh, out, rows: tuple, what: str, breakdown_rows: tuple = ()) -> None:
+    """Envs (label, human policy, humans, settings) on the trainer's path at batch 1024, each as a ratio to the
+    first, in one run; `breakdown_rows`: those whose step is also split into its pieces."""
     batch, repeats = 1024, 3
     info = machine_info()
     print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")
     d = 1 if mesh is None else mesh.devices.size
-    print(f"{'env':>30} {'compile s':>9} {'step_batch':>12} {f'on {d} devices':>14} {'ratio':>6}")
-    rows = []
-    for label, extra in OBSTACLE_ROWS:
-        row = measure("orca", 20, batch, scan_length(batch, False), repeats, plain=False, mesh=mesh, extra=extra)
+    print(f"{'env':>34} {'compile s':>9} {'step_batch':>12} {f'on {d} devices':>14} {'ratio':>6}")
+    results = []
+    for label, policy, humans, extra in rows:
+        row = measure(policy, humans, batch, scan_length(batch, False), repeats, plain=False, mesh=mesh, extra=extra)
         row["label"] = label
-        rows.append(row)
-        rate = row.get("step_batch_devices_env_steps_per_s", row["step_batch_env_steps_per_s"])
-        row["ratio_to_open_space"] = rate / rows[0].get(
-            "step_batch_devices_env_steps_per_s", rows[0]["step_batch_env_steps_per_s"]
-        )
+        results.append(row)
+        rate = lambda r: r.get("step_batch_devices_env_steps_per_s", r["step_batch_env_steps_per_s"])  # noqa: E731
+        row["ratio_to_first"] = rate(row) / rate(results[0])
         print(
-            f"{label:>30} {row['compile_s']:>9.1f} {row['step_batch_env_steps_per_s']:>12,.0f} "
-            f"{row.get('step_batch_devices_env_steps_per_s', float('nan')):>14,.0f} "
-            f"{row['ratio_to_open_space']:>6.2f}",
+            f"{label:>34} {row['compile_s']:>9.1f} {row['step_batch_env_steps_per_s']:>12,.0f} "
+            f"{row.get('step_batch_devices_env_steps_per_s', float('nan')):>14,.0f} {row['ratio_to_first']:>6.2f}",
             flush=True,
         )
-    parts = {label: breakdown("orca", 20, batch, repeats, extra) for label, extra in OBSTACLE_ROWS[::2]}
+    parts = {label: breakdown(policy, humans, batch, repeats, extra) for label, policy, humans, extra in breakdown_rows}
     for label, ms in parts.items():
         print(f"where the time goes, {label}, batch {batch} (ms per batched call): {ms}")
     write_json(
         out,
         {
             "benchmark": "env_throughput",
-            "obstacles": True,
+            what: True,
             "machine": info,
-            "results": rows,
+            "results": results,
             "breakdown_ms_batch1024": parts,
         },
     )
@@ -275,6 +286,13 @@ def main(argv=None):
         "the obstacles cost in the ORCA solve",
     )
     parser.add_argument(
+        "--replay",
+        nargs="+",
+        metavar="FILES",
+        help="the replay scenario over these env.replay_files entries (catalogue names, e.g. eth-ucy, in the data "
+        "directory): recorded and reactive people in 80 slots against 20 and 80 ORCA humans, batch 1024",
+    )
+    parser.add_argument(
         "--devices",
         type=int,
         default=len(os.sched_getaffinity(0)),
@@ -287,7 +305,9 @@ def main(argv=None):
         mesh = jax.sharding.Mesh(jax.devices()[: args.devices], (ENV_AXIS,))
 
     if args.obstacles:
-        return obstacle_costs(mesh, args.out)
+        return compare_envs(mesh, args.out, OBSTACLE_ROWS, "obstacles", OBSTACLE_ROWS[::2])
+    if args.replay:
+        return compare_envs(mesh, args.out, replay_rows(args.replay), "replay")
     if args.gst_only:
         grid = [("orca", 20, b, p) for b in (256, 1024) for p in ("const_vel", "gst")]
         repeats = 2

@@ -482,6 +482,18 @@ CASES = {
         *evaluate("--policy", "orca", "--overwrite"),
         "--overwrite lets --suite DIR replace an earlier suite; no --suite given",
     ),
+    "eval: --suite-rows without a suite": (
+        *evaluate("--policy", "orca", "--suite-rows", "real"),
+        "--suite-rows chooses the rows of --suite DIR; no --suite given",
+    ),
+    "eval: an unknown suite row": (
+        *evaluate("--policy", "orca", "--suite", "{tmp}/rows", "--suite-rows", "zara3"),
+        "--suite-rows: unknown row 'zara3'; allowed: synthetic, real, circle_crossing",
+    ),
+    "eval: the real scenes without their recordings": (
+        *evaluate("--policy", "orca", "--suite", "{tmp}/real", "--suite-rows", "real"),
+        "the suite's real scenes need the ETH/UCY recordings; 6 are missing",
+    ),
     "sweep: 100000 seeds in a plan": (
         "tgrf-sweep",
         [TINY, "--seeds", "100000", "--print-plan"],

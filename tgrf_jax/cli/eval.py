@@ -60,6 +60,14 @@ def parser() -> argparse.ArgumentParser:
         "DIR/suite.md, DIR/suite.csv and a thumbnail per scenario (docs/scenarios.md); a DIR that holds an "
         "earlier suite is refused unless --overwrite",
     )
+    p.add_argument(
+        "--suite-rows",
+        nargs="+",
+        metavar="NAME",
+        help="--suite DIR: play only these rows: scenario names, 'real' (the five recorded scenes, which need the "
+        "ETH/UCY recordings) or 'synthetic' (every scenario); default: every scenario and, when the recordings "
+        "are downloaded, the real scenes",
+    )
     p.add_argument("--overwrite", action="store_true", help="--suite DIR: replace the earlier suite in DIR")
     p.add_argument(
         "--all-metrics",
@@ -88,8 +96,15 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
         check_writable(args.out, "--out", directory=False)
     if args.overwrite and not args.suite:
         raise ConfigError("--overwrite lets --suite DIR replace an earlier suite; no --suite given")
+    if args.suite_rows and not args.suite:
+        raise ConfigError("--suite-rows chooses the rows of --suite DIR; no --suite given")
     if args.suite:
         check_suite_dir(args.suite, args.overwrite)
+        args.suite_scenarios, args.suite_real = suite_rows(args.suite_rows)
+        if args.suite_real:
+            from tgrf_jax.cli.suite import check_recordings
+
+            check_recordings()
 
     start()
     check_policy_fits(playable)
@@ -157,6 +172,20 @@ def _say_compiling() -> None:
     print("  compiling the evaluation program, then playing the episodes ...", flush=True)
 
 
+def suite_rows(names) -> tuple[tuple[str, ...] | None, bool | None]:
+    """--suite-rows as run_suite's (scenarios, real): None, None for every row (the real scenes if downloaded)."""
+    from tgrf_jax.config import SCENARIOS
+
+    if not names:
+        return None, None
+    allowed = ("synthetic", "real", *SCENARIOS)
+    unknown = [n for n in names if n not in allowed]
+    if unknown:
+        raise ConfigError(f"--suite-rows: unknown row {unknown[0]!r}; allowed: {', '.join(allowed)}")
+    scenarios = SCENARIOS if "synthetic" in names else tuple(n for n in SCENARIOS if n in names)
+    return scenarios, "real" in names
+
+
 def check_suite_dir(path: str, overwrite: bool) -> None:
     """--suite DIR must be writable, and hold no earlier suite unless --overwrite (raises ConfigError)."""
     check_writable(path, "--suite", directory=True)
@@ -201,6 +230,8 @@ def _suite(args, playable: Playable) -> int:
         episodes=args.episodes,
         seed=args.seed,
         capacity=capacity,
+        scenarios=args.suite_scenarios,
+        real=args.suite_real,
         log=lambda line: print(line, flush=True),
     )
     return 0

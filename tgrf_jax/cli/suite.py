@@ -89,6 +89,18 @@ def missing_recordings(data_dir=None) -> list[str]:
     ]
 
 
+def check_recordings() -> None:
+    """Raises ConfigError unless every file of the real scenes' rows is in the data directory."""
+    from tgrf_jax.config import ConfigError
+
+    missing = missing_recordings()
+    if missing:
+        raise ConfigError(
+            f"the suite's real scenes need the ETH/UCY recordings; {len(missing)} are missing (first: {missing[0]}): "
+            "`tgrf-data fetch eth-ucy` downloads them"
+        )
+
+
 def run_suite(
     config,
     policies: dict,
@@ -116,11 +128,12 @@ def run_suite(
 
     scenarios = SCENARIOS if scenarios is None else tuple(scenarios)
     capacity = max(sizes) if capacity is None else capacity
-    env = CrowdNavEnv(suite_env_config(config.env, capacity, scenarios), config.reward)
-    base = env.default_params
+    if scenarios:
+        env = CrowdNavEnv(suite_env_config(config.env, capacity, scenarios), config.reward)
+        base = env.default_params
     played = [n for n in sizes if n <= capacity]
     skipped = [n for n in sizes if n > capacity]
-    if skipped:
+    if skipped and scenarios:
         log(f"suite: crowd sizes {skipped} exceed the policy's {capacity} human slots; left out")
     missing = missing_recordings()
     if real is None:
@@ -130,18 +143,15 @@ def run_suite(
                 f"suite: the real scenes ({', '.join(FOLDS)}) are left out: {len(missing)} of their recordings are not "
                 f"in the data directory (first: {missing[0]}); `tgrf-data fetch eth-ucy` downloads them"
             )
-    elif real and missing:
-        from tgrf_jax.config import ConfigError
-
-        raise ConfigError(
-            f"the suite's real scenes need the ETH/UCY recordings; {len(missing)} are missing (first: {missing[0]}): "
-            "`tgrf-data fetch eth-ucy` downloads them"
-        )
+    elif real:
+        check_recordings()
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     total = (len(scenarios) * len(played) + (len(FOLDS) if real else 0)) * len(policies)
     done = 0
+    if not scenarios and not real:
+        raise ValueError("the suite has no rows: no scenarios and not the real scenes")
     log("suite: compiling the evaluation program (one per policy, shared by every row), then playing the rows ...")
     t0 = time.perf_counter()
 
