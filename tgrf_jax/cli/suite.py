@@ -152,7 +152,8 @@ def run_suite(
     done = 0
     if not scenarios and not real:
         raise ValueError("the suite has no rows: no scenarios and not the real scenes")
-    log("suite: compiling the evaluation program (one per policy, shared by every row), then playing the rows ...")
+    if scenarios:
+        log("suite: compiling the evaluation program (one per policy, shared by every row), then playing the rows ...")
     t0 = time.perf_counter()
 
     def play(env, params, scenario, humans):
@@ -176,7 +177,7 @@ def run_suite(
             play(env, params_for(base, weights, n), name, n)
         thumbnail(env, params_for(base, weights, min(10, capacity)), name)
     if real:
-        log("suite: the real scenes: compiling their evaluation program ...")
+        log("suite: the real scenes: compiling their evaluation program (one per policy), then playing them ...")
         real_env = CrowdNavEnv(real_env_config(config.env, capacity), config.reward)
         for s, name in enumerate(FOLDS):
             params = real_env.default_params.replace(replay_weights=jnp.zeros(len(FOLDS), jnp.float32).at[s].set(1.0))
