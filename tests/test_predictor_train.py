@@ -233,6 +233,8 @@ def test_collector_is_deterministic_and_logs_only_what_the_robot_sees():
         (["train", "--dataset", "d.npz", "--run-dir", "r", "--dropout", "-0.1"], "dropout = -0.1 must be in"),
         (["collect", "--envs", "2", "--out", "x.npz"], "num_envs = 2 must be an integer >= 5"),
         (["eval", "--dataset", "d.npz", "--params", "nothing.npz"], "nothing.npz.*do not exist"),
+        (["collect", "--recordings", "zara9", "--out", "x.npz"], "--recordings 'zara9' is not a catalogue name"),
+        (["collect", "--recordings", "zara1", "--out", "x.npz"], "--recordings: 1 file.* tgrf-data fetch eth-ucy"),
     ],
 )
 def test_cli_errors_name_the_option_or_path(argv, message, capsys, tmp_path, monkeypatch):
@@ -381,3 +383,33 @@ def test_cli_from_step_continues_from_that_checkpoint(tmp_path, capsys):
         assert out.err.startswith("tgrf-predictor: error: ") and message in out.err, out.err
         assert len(out.err.splitlines()) == 1 and "Traceback" not in out.err, out.err
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["2", "4"]  # nothing deleted by a refusal
+
+
+def test_a_dataset_from_recordings_reads_as_a_simulated_one(tmp_path, monkeypatch, capsys):
+    from helpers import write_catalogue_recordings
+
+    write_catalogue_recordings(tmp_path / "data" / "pedestrians")
+    monkeypatch.setenv("TGRF_JAX_DATA", str(tmp_path / "data"))
+    out = tmp_path / "zara.npz"
+    argv = ["collect", "--recordings", "zara1", "zara2", "--chunk-steps", "20", "--out", str(out)]
+    assert cli.main(argv) == 0
+    assert "wrote" in capsys.readouterr().out
+    dataset = data_lib.load_dataset(out)
+    arrays = dataset["arrays"]
+    assert dataset["config"]["crowd"] == data_lib.RECORDED and arrays["visible"].shape[1:] == (20, 3)
+    # two files of 81 steps (20 s at dt 0.25) in envs of 20 steps: 4 each (the last step is too short for a
+    # window and left out); everyone walks a straight line
+    assert arrays["visible"].shape[0] == 8 and arrays["visible"].sum() == 2 * 80 * 3
+    train, held_out = data_lib.split_index(arrays)
+    assert len(train) and len(held_out)
+    evaluate = train_lib.make_evaluator(data_lib.device_arrays(arrays))
+    every = data_lib.window_index(arrays["visible"], arrays["seg"], range(arrays["visible"].shape[0]))
+    metrics = evaluate(predictor.pretrained("orca"), every)
+    assert metrics["cv_ade"] < 1e-4  # constant velocity is exact on straight walkers
+    assert (
+        cli.main(
+            ["eval", "--dataset", str(out), "--pretrained", "orca", "--all-envs", "--out", str(tmp_path / "e.json")]
+        )
+        == 0
+    )
+    assert json.loads((tmp_path / "e.json").read_text())["cv_ade"] < 1e-4

@@ -78,6 +78,17 @@ def test_paper_tables_hold_every_row_of_the_paper():
         ({"rows": [{"name": "a", "paper": {"tgrf": {"sr_meen": 1}}}]}, "unknown field(s) ['sr_meen']"),
         ({"rows": [{"name": "a", "grid": {"reward.h_disc": [1.0]}}]}, "must have the experiment's axes"),
         ({"grid": {"network.name": ["mlp", "dsrnn"]}, "rows": [{"name": "a"}]}, "network.name"),
+        ({"compare": ["orca"]}, "compare: policies are compared on the rows' test episodes, and no row has a test"),
+        (
+            {"compare": ["orca", "nosuch"], "rows": [{"name": "a", "test": {"env.time_limit": 3}}]},
+            "compare: unknown policy 'nosuch'; allowed: obstacles-mix-tgrf",
+        ),
+        ({"rows": [{"name": "a", "test": {"ppo.lr": 0.1}}]}, "rows[0].test: ppo.lr is not an env field"),
+        ({"rows": [{"name": "a", "test": {}}]}, "rows[0].test must set at least one env field"),
+        (
+            {"rows": [{"name": "a", "test": {"env.scenario": "moon"}}]},
+            "experiment 'exp', row 'a', test: env.scenario = 'moon'",
+        ),
     ],
 )
 def test_bad_experiment_files_are_rejected_naming_the_field(tmp_path, changes, message):
@@ -588,3 +599,47 @@ def test_regime_isolation_rows_each_put_back_one_setting_of_the_paper_regime():
         assert cfg["ppo.num_envs"] * cfg["ppo.num_steps"] * (
             cfg["ppo.total_steps"] // (cfg["ppo.num_envs"] * cfg["ppo.num_steps"])
         ) == pytest.approx(3.0e6, rel=1e-3)
+
+
+def test_rows_with_a_test_are_played_there_beside_the_compared_policies(tmp_path):
+    path = write_experiment(
+        tmp_path / "exp.yaml",
+        seeds=1,
+        grid={"reward.scheme": ["tgrf"]},
+        compare=["orca", "table1-const_vel-tgrf"],
+        rows=[{"name": "mlp", "label": "MLP", "test": {"env.time_limit": 2.0}}],
+    )
+    exp = spec_lib.load(str(path))
+    out = tmp_path / "out"
+    lines = []
+    assert runner.reproduce(exp, out, log=lines.append, export_to=tmp_path / "pretrained") == 0
+    row = out / "mlp"
+    (run,) = [p for p in (row / "runs").iterdir()]
+    tested = json.loads((run / "test_eval.json").read_text())
+    final = json.loads((run / "eval.json").read_text())
+    assert tested["episodes"] == final["episodes"] == 4 and tested["seed"] == final["seed"]
+    # the tests play 2-second episodes: never a success (the goal is at least 8 m away), every episode a timeout
+    assert tested["results"]["learned"]["timeout_rate"] + tested["results"]["learned"]["collision_rate"] == 1.0
+    assert final["results"]["learned"]["timeout_rate"] < 1.0
+    orca = json.loads((row / "compare" / "orca.json").read_text())["results"]["orca"]
+    shipped = json.loads((row / "compare" / "table1-const_vel-tgrf.json").read_text())["results"]["learned"]
+    assert orca["n_episodes"] == shipped["n_episodes"] == 4 and orca["success_rate"] == 0.0
+    # the report's numbers are the tests', and the compared policies sit beside them
+    with open(out / "report.csv", newline="") as f:
+        (record,) = list(csv.DictReader(f))
+    assert float(record["sr_mean"]) == 0.0
+    md = (out / "report.md").read_text()
+    assert (
+        "## On the test episodes" in md and "| mlp | orca | 1 |" in md and "| mlp | table1-const_vel-tgrf | 1 |" in md
+    )
+    meta = json.loads((tmp_path / "pretrained" / "exp-mlp-tgrf" / "meta.json").read_text())
+    assert meta["test"]["success_rate"] == 0.0
+    prov = json.loads((row / "test_provenance.json").read_text())
+    assert [e["exit_code"] for e in prov] == [0, 0, 0] and prov[1]["command"].startswith("tgrf-eval --policy orca")
+    # an interrupted test stage resumes where it stopped: only the missing evaluation is played again
+    (row / "compare" / "orca.json").unlink()
+    lines.clear()
+    assert runner.reproduce(exp, out, log=lines.append) == 0
+    assert any("trained, not yet tested" in line for line in lines)
+    assert [line.split("| ")[1] for line in lines if "| test " in line] == ["test 1/1: orca"]
+    assert len(json.loads((row / "test_provenance.json").read_text())) == 4

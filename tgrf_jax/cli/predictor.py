@@ -60,6 +60,20 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--steps", type=int, default=defaults.steps, help="frames per env")
     c.add_argument("--seed", type=int, default=defaults.seed)
     c.add_argument("--out", required=True, help="dataset path (.npz; the config goes beside it as .json)")
+    c.add_argument(
+        "--recordings",
+        nargs="+",
+        metavar="NAME",
+        help="make the dataset from recorded pedestrians instead of the simulator: catalogue names as "
+        "env.replay_files takes them (eth-ucy, a fold such as zara1, a file such as ucy/crowds_zara03.txt), read "
+        "in the data directory (tgrf-data fetch eth-ucy), cut into envs of --chunk-steps steps",
+    )
+    c.add_argument(
+        "--chunk-steps",
+        type=int,
+        default=data_lib.CHUNK_STEPS,
+        help=f"--recordings: steps per env (default {data_lib.CHUNK_STEPS}, 50 s)",
+    )
 
     t = sub.add_parser("train", help="train on a dataset, resuming from --run-dir's checkpoints")
     tdef = train_lib.TrainConfig()
@@ -105,6 +119,12 @@ def _parser() -> argparse.ArgumentParser:
         help=".npz of the reference's state-dict arrays (names as in the reference fixture, 'w/' prefix optional)",
     )
     e.add_argument("--windows", type=int, default=tdef.eval_windows, help="held-out windows evaluated (spread evenly)")
+    e.add_argument(
+        "--all-envs",
+        action="store_true",
+        help="evaluate windows from every env of the dataset, not only its held-out last 20%% (a dataset of a "
+        "held-out scene)",
+    )
     e.add_argument("--out", help="write the metrics as JSON here")
     return parser
 
@@ -156,10 +176,40 @@ def _check_outputs(args) -> None:
 
 
 # DatasetError, WeightsError and TrainingError are ValueErrors; so is the ConfigError of a checked option
+def _collect_recordings(args) -> int:
+    from tgrf_jax.config import ConfigError
+    from tgrf_jax.env.replay import catalogue_entries
+    from tgrf_jax.pedestrians import default_data_dir
+
+    specs = []
+    for name in args.recordings:
+        try:
+            specs += [entry.spec() for entry in catalogue_entries(name)]
+        except KeyError:
+            raise ConfigError(
+                f"--recordings {name!r} is not a catalogue name; allowed: eth-ucy, a fold (eth, hotel, univ, zara1, "
+                "zara2) or a file of the catalogue (tgrf-data list)"
+            ) from None
+    missing = [str(s.path) for s in specs if not pathlib.Path(s.path).is_file()]
+    if missing:
+        raise ConfigError(
+            f"--recordings: {len(missing)} file(s) are not in the data directory {str(default_data_dir())!r} "
+            f"(first: {missing[0]}); `tgrf-data fetch eth-ucy` downloads them"
+        )
+    print(f"making a dataset of {len(specs)} recording(s), envs of {args.chunk_steps} steps", flush=True)
+    dataset = data_lib.recorded(specs, chunk_steps=args.chunk_steps)
+    path = data_lib.save_dataset(pathlib.Path(args.out), dataset)
+    shape = dataset["arrays"]["visible"].shape
+    print(f"wrote {path} ({shape[0]} envs x {shape[1]} steps x {shape[2]} people slots)")
+    return 0
+
+
 @command_line("tgrf-predictor", bad_input=(ValueError,))
 def main(argv: list[str] | None, recovery: Recovery) -> int:
     args = _parser().parse_args(argv)
     _check_outputs(args)
+    if args.command == "collect" and args.recordings:
+        return _collect_recordings(args)
     if args.command == "collect":
         config = data_lib.CollectConfig(crowd=args.crowd, num_envs=args.envs, steps=args.steps, seed=args.seed)
         out = pathlib.Path(args.out)
@@ -220,7 +270,11 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
     params, source = _load_params(args)
     _check_finite_params(params, source)
     dataset = data_lib.load_dataset(args.dataset)
-    _, val_index = data_lib.split_index(dataset["arrays"])
+    if args.all_envs:
+        arrays = dataset["arrays"]
+        val_index = data_lib.window_index(arrays["visible"], arrays["seg"], range(arrays["visible"].shape[0]))
+    else:
+        _, val_index = data_lib.split_index(dataset["arrays"])
     if not len(val_index):
         raise data_lib.DatasetError(
             f"dataset {args.dataset!r} has no held-out window to evaluate (no pedestrian "

@@ -17,10 +17,12 @@ import shutil
 import numpy as np
 
 from tgrf_jax.config import ConfigError
-from tgrf_jax.experiments.spec import Experiment, Row
+from tgrf_jax.experiments.spec import BASELINES, Experiment, Row
 from tgrf_jax.storage.files import write_atomic
 
 REPORT_MD = "report.md"
+TEST_FILE = "test_eval.json"  # a run's final policy on its row's test episodes (tgrf_jax.experiments.testing)
+COMPARE_DIR = "compare"  # <row>/compare/<policy>.json: a compared policy on the same episodes
 REPORT_CSV = "report.csv"
 CSV_FIELDS = (
     "experiment",
@@ -188,6 +190,8 @@ def collect(exp: Experiment, out: pathlib.Path) -> list[dict]:
         problem = evals_problem(out / row.name) if (out / row.name / "evals.csv").is_file() else None
         if problem:
             runs = []
+        elif row.test:  # the row's results are its tests, once every run has one
+            runs = tested_runs(out / row.name)
         prov = _provenance(out / row.name) if runs else {}
         for value in row.grid[0][1]:
             ours = cell([r for r in runs if r.get(axis) == str(value)])
@@ -316,6 +320,8 @@ def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> st
             for fig in _FIGURES:
                 if (out / f"{row.name}_{fig}").is_file():
                     parts += ["", f"![{row.label}: {fig}]({row.name}_{fig})"]
+    if any(row.test for row in exp.rows):
+        parts += ["", "## On the test episodes", "", _tests_table(exp, out)]
     prov = [r for r in records if r.get("commit")]
     if prov:
         parts += ["", "| row | wall time | invocations | commits | machines | finished |", "|---|---|---|---|---|---|"]
@@ -334,6 +340,52 @@ def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> st
     return "\n".join(parts) + "\n"
 
 
+_TEST_COLUMNS = (
+    ("success_rate", "SR (%)", 100.0),
+    ("collision_rate", "collision (%)", 100.0),
+    ("timeout_rate", "timeout (%)", 100.0),
+    ("nav_time", "NT (s)", 1.0),
+    ("path_length", "PL (m)", 1.0),
+    ("itr_disc", "ITR disc (%)", 1.0),
+    ("spl", "SPL", 1.0),
+    ("personal_space_compliance", "PS compliance (%)", 1.0),
+)
+
+
+def _tests_table(exp: Experiment, out: pathlib.Path) -> str:
+    """Per tested row: each compared value's policies (mean ± std over seeds) and every compared policy, on the
+    same test episodes."""
+    header = "| row | policy | seeds | " + " | ".join(label for _, label, _ in _TEST_COLUMNS) + " |"
+    lines = [header, "|" + "---|" * (len(_TEST_COLUMNS) + 3)]
+
+    def ms(values, scale):
+        x = np.array([_float(v) * scale for v in values])
+        x = x[np.isfinite(x)]
+        if not x.size:
+            return "–"
+        return f"{x.mean():.2f}" + (f" ± {x.std(ddof=1):.2f}" if x.size > 1 else "")
+
+    axis = exp.column_axis
+    for row in (r for r in exp.rows if r.test):
+        runs = tested_runs(out / row.name)
+        for value in row.grid[0][1]:
+            members = [r for r in runs if r.get(axis) == str(value)]
+            cells = [ms([m.get(k) for m in members], scale) for k, _, scale in _TEST_COLUMNS] if members else None
+            label = f"this row ({exp.column_label(value)})"
+            shown = " | ".join(cells) if cells else " | ".join("…" for _ in _TEST_COLUMNS)
+            lines.append(f"| {row.name} | {label} | {len(members) or '…'} | {shown} |")
+        played = compared(exp, out / row.name)
+        for name in exp.compare:
+            result = played.get(name)
+            shown = (
+                " | ".join(ms([result.get(k)], scale) for k, _, scale in _TEST_COLUMNS)
+                if result
+                else " | ".join("…" for _ in _TEST_COLUMNS)
+            )
+            lines.append(f"| {row.name} | {name} | {'1' if result else '…'} | {shown} |")
+    return "\n".join(lines)
+
+
 def write(exp: Experiment, out) -> list[pathlib.Path]:
     """report.md and report.csv in `out` (and the rows' figures); returns the written paths."""
     out = pathlib.Path(out)
@@ -350,3 +402,44 @@ def write(exp: Experiment, out) -> list[pathlib.Path]:
     write_atomic(out / REPORT_CSV, buf.getvalue())
     write_atomic(out / REPORT_MD, format_report(exp, out, records))
     return [out / REPORT_MD, out / REPORT_CSV]
+
+
+def tested_runs(row_dir: pathlib.Path) -> list[dict]:
+    """The row's evals.csv rows with the metrics of each run's test in place of its final evaluation's ([] until
+    every run is tested)."""
+    runs = read_evals(row_dir)
+    out = []
+    for r in runs:
+        result = _learned(row_dir / "runs" / r.get("run", "") / TEST_FILE)
+        if result is None:
+            return []
+        out.append({**r, **{k: "" if v is None else str(v) for k, v in result.items()}})
+    return out
+
+
+def compared(exp: Experiment, row_dir: pathlib.Path) -> dict[str, dict]:
+    """name -> the metrics of each compared policy on the row's test episodes (those played so far)."""
+    out = {}
+    for name in exp.compare:
+        payload = _payload(row_dir / COMPARE_DIR / f"{name}.json")
+        if payload is None:
+            continue
+        results = payload.get("results", {})
+        result = results.get(name if name in BASELINES else "learned")
+        if isinstance(result, dict):
+            out[name] = result
+    return out
+
+
+def _payload(path: pathlib.Path) -> dict | None:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        return data if isinstance(data, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+def _learned(path: pathlib.Path) -> dict | None:
+    payload = _payload(path)
+    result = None if payload is None else payload.get("results", {}).get("learned")
+    return result if isinstance(result, dict) else None

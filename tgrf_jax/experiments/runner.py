@@ -28,7 +28,7 @@ from collections.abc import Callable
 import yaml
 
 from tgrf_jax.config import ConfigError
-from tgrf_jax.experiments import report, search
+from tgrf_jax.experiments import report, search, testing
 from tgrf_jax.experiments.spec import Experiment, Row, portable, row_command
 from tgrf_jax.storage.files import write_atomic
 
@@ -312,7 +312,7 @@ def export_best(exp: Experiment, out: pathlib.Path, row: Row, dest_root) -> list
     `dest_root/<experiment>-<row>-<value>` (see `tgrf_jax.pretrained`)."""
     from tgrf_jax import pretrained
 
-    runs = report.read_evals(out / row.name)
+    runs = report.tested_runs(out / row.name) if row.test else report.read_evals(out / row.name)
     axis, written = exp.column_axis, []
     for value in row.grid[0][1]:
         members = [r for r in runs if r.get(axis) == str(value)]
@@ -359,7 +359,7 @@ def export_finished(exp: Experiment, out: pathlib.Path, dest_root) -> list[pathl
     return [
         path
         for row in exp.rows
-        if row.kind == "sweep" and row_state(out / row.name) == "done"
+        if row.kind == "sweep" and row_state(out / row.name) == "done" and testing.tested(exp, row, out / row.name)
         for path in export_best(exp, out, row, dest_root)
     ]
 
@@ -414,6 +414,9 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
 
     try:
         states = {r.name: row_state(out / r.name, r.kind) for r in exp.rows}
+        for r in exp.rows:
+            if states[r.name] == "done" and not testing.tested(exp, r, out / r.name):
+                states[r.name] = "trained, not yet tested"
         todo = [r for r in exp.rows if states[r.name] not in ("done", "read")]
         say(f"[{exp.name}] {exp.title}: {exp.size()}; {len(exp.rows) - len(todo)} rows already done; results in {out}")
         for row in report_exp.rows:  # what a grid row reads must be usable before hours go into the others
@@ -434,7 +437,11 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
                 f"{states[row.name]}; {_fmt_duration(time.perf_counter() - t0)} elapsed{eta}"
             )
             try:
-                code = run_row(exp, row, out / row.name, say, layout)
+                code = 0
+                if row_state(out / row.name, row.kind) != "done":
+                    code = run_row(exp, row, out / row.name, say, layout)
+                if code == 0 and row.test:
+                    code = testing.run_tests(exp, row, out / row.name, say, source_commit(), machine())
             except KeyboardInterrupt:
                 say(f"[{exp.name}] row {row.name} interrupted; rerun the same command to resume")
                 raise

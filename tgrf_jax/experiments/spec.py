@@ -19,6 +19,17 @@ Schema (configs/experiments/*.yaml):
 
 Every row runs as one `tgrf-sweep` (all grid points x seeds of the row train as one program).
 
+A row may be tested apart from where it trains (leave-one-scene-out: train on four scenes, test on the fifth):
+its `test` lists env settings that every run's final policy is then played under by `tgrf-eval` (the final
+evaluation's episodes and seed), and `compare` (top level) names other policies played there too, shipped ones
+(`tgrf_jax.pretrained`) or the baseline robots:
+
+    compare: [table1-const_vel-tgrf, orca]
+    rows:
+      - name: eth
+        set: {env.replay_files: [hotel, univ, zara1, zara2]}
+        test: {env.replay_files: [eth]}
+
 A search experiment (`layout: search`) compares ways of searching one space at equal env steps; its rows say
 what they are (`kind`), and it has no grid, columns or seeds:
 
@@ -50,6 +61,7 @@ from tgrf_jax.config import ConfigError, TrainConfig, apply_overrides, load_yaml
 LAYOUTS = ("table", "curves", "heatmap", "search")
 PAPER_FIELDS = ("sr_mean", "sr_std", "sr", "nt", "pl", "itr")
 _TOP_KEYS = (
+    "compare",
     "title",
     "description",
     "layout",
@@ -63,7 +75,8 @@ _TOP_KEYS = (
     "space",
     "objective",
 )
-_ROW_KEYS = ("name", "label", "kind", "set", "grid", "paper")
+_ROW_KEYS = ("name", "label", "kind", "set", "grid", "paper", "test")
+BASELINES = ("orca", "straight")  # the baseline robots a `compare` list may name beside shipped policies
 # search experiments: what each kind of row takes besides name, label, kind and set
 SEARCH_KINDS = {"grid": ("results",), "tune": ("population", "interval"), "random": ("draws",)}
 _SEARCH_ONLY = ("space", "objective")
@@ -94,6 +107,7 @@ class Row:
     members: int = 0  # tune: the population; random: the draws (the paired points of `grid`)
     interval: int | None = None  # tune: updates between exploit steps (None: tgrf-tune's default, a tenth)
     results: str | None = None  # grid: the absolute path of the finished tgrf-sweep directory it reads
+    test: tuple[str, ...] = ()  # `env.field=value` items its policies are tested under (none: as trained)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +122,7 @@ class Experiment:
     notes: str = ""
     space: tuple[str, ...] = ()  # search: FIELD=LO:HI[:log] items
     objective: str = ""  # search: what every procedure is scored by
+    compare: tuple[str, ...] = ()  # policies played on the rows' test episodes beside the rows' own
 
     @property
     def search(self) -> bool:
@@ -196,6 +211,8 @@ class Experiment:
         }
         if self.search:
             data.update(space=list(self.space), objective=self.objective)
+        if self.compare:
+            data["compare"] = list(self.compare)
         return data
 
 
@@ -203,7 +220,7 @@ def _row_dict(row: Row) -> dict:
     """A row's settings as experiment.yaml records them (a sweep row's as before search rows existed)."""
     data = {"name": row.name, "set": list(row.overrides), "grid": {k: list(v) for k, v in row.grid}}
     if row.kind == "sweep":
-        return data
+        return {**data, "test": list(row.test)} if row.test else data
     extra = {"tune": {"population": row.members, "interval": row.interval}, "random": {"draws": row.members}}
     data = {"name": row.name, "kind": row.kind, **data, **extra.get(row.kind, {})}
     if row.kind == "grid":
@@ -245,7 +262,8 @@ def _overrides(mapping: Any, where: str) -> tuple[str, ...]:
     for key, value in mapping.items():
         if not isinstance(key, str) or "." not in key:
             raise ConfigError(f"{where}: key {key!r} must be a dotted config field such as ppo.total_steps")
-        items.append(f"{key}={yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()}")
+        text = yaml.safe_dump(value, default_flow_style=True, width=math.inf).strip().removesuffix("...").strip()
+        items.append(f"{key}={text}")
     return tuple(items)
 
 
@@ -343,6 +361,15 @@ def load(name_or_path: str) -> Experiment:
                 f"{where}.grid must have the experiment's axes ({', '.join(k for k, _ in axes)}); "
                 "only their values may differ"
             )
+        test = _overrides(raw.get("test"), f"{where}.test")
+        if "test" in raw and not test:
+            raise ConfigError(f"{where}.test must set at least one env field (or be left out: tested as trained)")
+        for item in test:
+            if not item.startswith("env."):
+                raise ConfigError(
+                    f"{where}.test: {item.split('=', 1)[0]} is not an env field; a test changes only env.* "
+                    "settings (the policy is the row's)"
+                )
         rows.append(
             Row(
                 name=name,
@@ -350,8 +377,10 @@ def load(name_or_path: str) -> Experiment:
                 overrides=common + _overrides(raw.get("set"), f"{where}.set"),
                 grid=grid,
                 paper=_paper(raw.get("paper"), f"{where}.paper", grid[0][1]),
+                test=test,
             )
         )
+    compare = _compare(data.get("compare"), f"{path}: compare", any(r.test for r in rows))
     columns = {str(k): str(v) for k, v in (data.get("columns") or {}).items()}
     exp = Experiment(
         name=path.stem,
@@ -362,10 +391,41 @@ def load(name_or_path: str) -> Experiment:
         columns=columns,
         rows=tuple(rows),
         notes=str(data.get("notes", "")),
+        compare=compare,
     )
     for row in exp.rows:
         sweep_spec(exp, row)  # a typo in any row fails here, before anything runs
+        if row.test:
+            tested_config(exp, row)
     return exp
+
+
+def _compare(raw: Any, where: str, tested: bool) -> tuple[str, ...]:
+    """The policies a `compare` list names: shipped policies (tgrf_jax.pretrained) or the baseline robots."""
+    from tgrf_jax import pretrained
+
+    if raw is None:
+        return ()
+    if not tested:
+        raise ConfigError(f"{where}: policies are compared on the rows' test episodes, and no row has a test")
+    known = (*pretrained.available(), *BASELINES)
+    if not isinstance(raw, list) or not raw or not all(isinstance(n, str) for n in raw):
+        raise ConfigError(f"{where} must be a list of policy names; allowed: {', '.join(known)}")
+    for name in raw:
+        if name not in known:
+            raise ConfigError(f"{where}: unknown policy {name!r}; allowed: {', '.join(known)}")
+    if len(set(raw)) != len(raw):
+        raise ConfigError(f"{where} names a policy twice")
+    return tuple(raw)
+
+
+def tested_config(exp: Experiment, row: Row) -> TrainConfig:
+    """The config a row's policies are tested under: the row's with its `test` settings (raises ConfigError
+    naming the row)."""
+    try:
+        return _resolved(exp.config, row.overrides + row.test)
+    except ConfigError as e:
+        raise ConfigError(f"experiment {exp.name!r}, row {row.name!r}, test: {e}") from None
 
 
 def _row_name(raw: Any, where: str, seen: set) -> str:

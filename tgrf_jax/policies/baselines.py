@@ -14,7 +14,7 @@ from typing import Protocol
 import jax
 import jax.numpy as jnp
 
-from tgrf_jax.env import orca
+from tgrf_jax.env import orca, routing
 from tgrf_jax.env.humans import ORCA_RADIUS_PAD, preferred_velocity
 from tgrf_jax.env.types import Obs
 
@@ -55,9 +55,11 @@ class OrcaPolicy:
     preferred velocity points at the goal with speed v_max. Unseen humans are masked out of the solve.
 
     With static obstacles (`obs.obstacles` holds M > 0 slots: the map, not the LiDAR) the solve also keeps the
-    robot off them, as RVO2's obstacle lines do, for `time_horizon_obst` seconds; without (M = 0) the call is the
-    obstacle-free one, unchanged. ORCA is local avoidance only: the preferred velocity still points
-    straight at the goal, so no path is planned around a wall that stands in the way.
+    robot off them, as RVO2's obstacle lines do, for `time_horizon_obst` seconds, and (`route`) the preferred
+    velocity points at the farthest point of the robot's shortest path around them that it can see, over the
+    map's visibility roadmap (`tgrf_jax.env.routing`, as the humans route; corners pushed out by the robot's
+    radius, safety space and `route_margin`): a global plan with ORCA as its local planner, as a robot with a
+    map would drive. Without obstacles (M = 0) the call is the obstacle-free one, unchanged.
     """
 
     time_horizon: float = 5.0
@@ -67,6 +69,8 @@ class OrcaPolicy:
     neighbor_dist: float = 10.0
     safety_space: float = 0.15
     dt: float = 0.25
+    route: bool = True
+    route_margin: float = 0.2
 
     def initialize_carry(self, batch_size: int):
         return _dummy_carry(batch_size)
@@ -82,6 +86,8 @@ class OrcaPolicy:
         vel = jnp.concatenate([obs.robot_vel[None], obs.human_vel])
         radii = jnp.concatenate([radius[None], obs.human_radius]) + ORCA_RADIUS_PAD + self.safety_space
         pref = preferred_velocity(robot_pos, goal) * v_max
+        if self.route and obs.obstacles.num_vertices.shape[-1] > 0:
+            pref = self._routed(obs.obstacles, robot_pos, radius, goal, v_max, pref)
         prefs = jnp.concatenate([pref[None], obs.human_vel])
         max_speeds = jnp.concatenate([v_max[None], jnp.full((n,), v_max)])
         seen = jnp.concatenate([jnp.ones((1,), bool), obs.human_mask])
@@ -106,6 +112,17 @@ class OrcaPolicy:
             **extra,
         )
         return new_vel[0]
+
+    def _routed(self, obstacles, robot_pos, radius, goal, v_max, pref):
+        """The preferred velocity towards the robot's route target: `pref` (straight at the goal) when the goal is
+        in sight or cannot be reached, else full speed at the farthest visible point of the shortest path."""
+        body = radius + ORCA_RADIUS_PAD + self.safety_space
+        roadmap = routing.build_roadmap(obstacles, body + self.route_margin, body)
+        to_goal = routing.goal_costs(roadmap, goal, obstacles, body)
+        target, _ = routing.aim(roadmap, to_goal, robot_pos, goal, obstacles, body)
+        offset = target - robot_pos
+        toward = offset / jnp.maximum(jnp.linalg.norm(offset), 1e-6) * v_max
+        return jnp.where(jnp.all(target == goal), pref, toward)
 
 
 BASELINES = {"straight": StraightPolicy, "orca": OrcaPolicy}

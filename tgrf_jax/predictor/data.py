@@ -1,4 +1,5 @@
-"""Training data for the predictor, collected from the JAX simulator as CrowdNav++ records it.
+"""Training data for the predictor, collected from the JAX simulator as CrowdNav++ records it, or made from
+recorded pedestrians (`recorded`).
 
 The robot is driven by ORCA and is invisible to the humans; episodes never end (collisions are ignored and a
 robot that reaches its goal gets a new one: half the time the median human position, half the time uniform
@@ -158,6 +159,64 @@ def collect(config: CollectConfig, log=print) -> dict:
         )
     out["seg"] = out["seg"].astype(np.int16 if out["seg"].max() < 2**15 else np.int32)
     return {"arrays": out, "config": dataclasses.asdict(config), "collect_seconds": time.perf_counter() - start}
+
+
+RECORDED = "recorded"  # the crowd name of a dataset made from recordings
+CHUNK_STEPS = 200  # a recording is cut into "envs" of this many steps (50 s at dt 0.25)
+
+
+def recorded(specs, dt: float = 0.25, chunk_steps: int = CHUNK_STEPS) -> dict:
+    """A dataset of recorded pedestrians (`specs`: `pedestrians.RecordingSpec` per file), in the arrays a simulated
+    one has: each file resampled onto `dt`, its people packed into columns as the replay scenario packs them (a
+    column holds one person at a time; `seg` is the person's track, so a new person in a column is a new
+    pedestrian), everyone present counted as seen, cut into envs of `chunk_steps` steps. The envs are ordered by
+    their place in their file (each file's first chunks first), so the last 20%, the held-out split, is the last
+    fifth or so of every file. Raises pedestrians.RecordingError naming a bad file."""
+    from tgrf_jax.env.replay import assign_columns
+    from tgrf_jax.pedestrians import load
+
+    if not 1 <= chunk_steps <= 100_000 or chunk_steps < WINDOW:
+        raise ValueError(f"chunk_steps = {chunk_steps} is out of range; allowed: {WINDOW} .. 100,000")
+    chunks, sources = [], []
+    for spec in specs:
+        scene = load(spec, dt=dt)
+        columns, k = assign_columns(scene.mask)
+        steps, tracks = np.nonzero(scene.mask)
+        pos = np.zeros((scene.num_steps, max(k, 1), 2), np.float32)
+        seg = np.zeros((scene.num_steps, max(k, 1)), np.int32)
+        vis = np.zeros((scene.num_steps, max(k, 1)), bool)
+        pos[steps, columns[tracks]] = scene.positions[steps, tracks]
+        seg[steps, columns[tracks]] = tracks + 1
+        vis[steps, columns[tracks]] = True
+        starts = range(0, scene.num_steps - WINDOW + 1, chunk_steps)
+        for i, start in enumerate(starts):
+            chunks.append(
+                (
+                    (i + 0.5) / len(starts),
+                    pos[start : start + chunk_steps],
+                    vis[start : start + chunk_steps],
+                    seg[start : start + chunk_steps],
+                )
+            )
+        sources.append(str(spec.path))
+    if len(chunks) < 2:
+        raise ValueError(f"the recordings make {len(chunks)} chunk(s) of {chunk_steps} steps; need at least 2")
+    chunks.sort(key=lambda c: c[0])
+    b, n = len(chunks), max(c[1].shape[1] for c in chunks)
+    out = dict(
+        robot_pos=np.zeros((b, chunk_steps, 2), np.float32),
+        human_pos=np.zeros((b, chunk_steps, n, 2), np.float32),
+        visible=np.zeros((b, chunk_steps, n), bool),
+        seg=np.zeros((b, chunk_steps, n), np.int32),
+    )
+    for j, (_, pos, vis, seg) in enumerate(chunks):
+        t, k = vis.shape
+        out["human_pos"][j, :t, :k], out["visible"][j, :t, :k], out["seg"][j, :t, :k] = pos, vis, seg
+        # the robot is nowhere in a recording: unseen frames are filled relative to the crowd's centre
+        out["robot_pos"][j] = pos[vis].mean(axis=0) if vis.any() else 0.0
+    out["seg"] = out["seg"].astype(np.int16 if out["seg"].max() < 2**15 else np.int32)
+    config = {"crowd": RECORDED, "files": sources, "dt": dt, "chunk_steps": chunk_steps}
+    return {"arrays": out, "config": config, "collect_seconds": None}
 
 
 def save_dataset(path, dataset: dict) -> pathlib.Path:
