@@ -234,7 +234,7 @@ def test_collector_is_deterministic_and_logs_only_what_the_robot_sees():
         (["collect", "--envs", "2", "--out", "x.npz"], "num_envs = 2 must be an integer >= 5"),
         (["eval", "--dataset", "d.npz", "--params", "nothing.npz"], "nothing.npz.*do not exist"),
         (["collect", "--recordings", "zara9", "--out", "x.npz"], "--recordings 'zara9' is not a catalogue name"),
-        (["collect", "--recordings", "zara1", "--out", "x.npz"], "--recordings: 1 file.* tgrf-data fetch eth-ucy"),
+        (["collect", "--recordings", "zara1", "--out", "x.npz"], "--recordings: 1 file.*tgrf-data fetch eth-ucy"),
     ],
 )
 def test_cli_errors_name_the_option_or_path(argv, message, capsys, tmp_path, monkeypatch):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tgrf_jax import CrowdNavEnv
-from tgrf_jax.env import stuck
+from tgrf_jax.env import SUCCESS, stuck
 
 WALL = [[-4.0, 0.0], [4.0, 0.0]]
 # a U-shaped alcove open downwards: a human inside must walk out of it, down and around
@@ -123,3 +123,24 @@ def test_open_space_has_no_routing_state_and_no_stuck_reassignments():
     _, state = env.reset(jax.random.key(0), params)
     assert state.routing is None
     assert not env.routes_humans
+
+
+@pytest.mark.parametrize("route", [True, False])
+def test_the_orca_robot_routes_around_a_wall_to_a_goal_behind_it(route):
+    """The ORCA robot baseline drives the shortest way round the map's wall (with `route`); straight at its goal,
+    ORCA alone keeps it pressed against the wall."""
+    from tgrf_jax.policies.baselines import OrcaPolicy
+
+    env = _env([WALL], num_humans=0, time_limit=30.0)
+    params = env.default_params
+    _, state = env.reset(jax.random.key(0), params)
+    state = state.replace(robot=state.robot.replace(pos=jnp.array([0.5, -3.0]), goal=jnp.array([-0.5, 3.0])))
+    policy = OrcaPolicy(route=route)
+    step = jax.jit(env.step_env)
+    obs, state, *_ = step(jax.random.key(0), state, jnp.zeros(2), params)  # standing still: the moved robot's view
+    for i in range(1, 120):
+        obs, state, _, terminated, truncated, info = step(jax.random.key(i), state, policy.action(obs), params)
+        if terminated or truncated:
+            break
+    reached = bool(terminated) and int(info.outcome) == SUCCESS
+    assert reached == route, (route, int(info.outcome), np.asarray(state.robot.pos))
