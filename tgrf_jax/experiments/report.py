@@ -266,6 +266,15 @@ def format_table(exp: Experiment, records: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _mean_std(values, scale: float, fmt: str) -> str:
+    """'mean ± sample std' of the finite numbers among `values` x `scale` ('mean' alone for one, '–' for none)."""
+    x = np.array([_float(v) * scale for v in values])
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return "–"
+    return fmt.format(x.mean()) + (f" ± {fmt.format(x.std(ddof=1))}" if x.size > 1 else "")
+
+
 def _grid_points(exp: Experiment, row: Row, out: pathlib.Path) -> str:
     """Mean ± std over seeds of SR and both ITRs for every grid point of a row (heat maps, curves)."""
     runs = read_evals(out / row.name)
@@ -282,11 +291,7 @@ def _grid_points(exp: Experiment, row: Row, out: pathlib.Path) -> str:
         groups.setdefault(tuple(r[n] for n in names), []).append(r)
 
     def ms(rs, key, scale=1.0):
-        x = np.array([_float(r.get(key)) * scale for r in rs])
-        x = x[np.isfinite(x)]
-        if not x.size:
-            return "–"
-        return f"{x.mean():.1f}" + (f" ± {x.std(ddof=1):.1f}" if x.size > 1 else "")
+        return _mean_std([r.get(key) for r in rs], scale, "{:.1f}")
 
     for key, rs in groups.items():
         lines.append(
@@ -359,11 +364,7 @@ def _tests_table(exp: Experiment, out: pathlib.Path) -> str:
     lines = [header, "|" + "---|" * (len(_TEST_COLUMNS) + 3)]
 
     def ms(values, scale):
-        x = np.array([_float(v) * scale for v in values])
-        x = x[np.isfinite(x)]
-        if not x.size:
-            return "–"
-        return f"{x.mean():.2f}" + (f" ± {x.std(ddof=1):.2f}" if x.size > 1 else "")
+        return _mean_std(values, scale, "{:.2f}")
 
     axis = exp.column_axis
     for row in (r for r in exp.rows if r.test):
