@@ -1,5 +1,5 @@
-"""Recorded pedestrians as the simulator's humans (`env.scenario: replay`, docs/pedestrians.md, "Playing
-recordings in the simulator").
+"""Recorded pedestrians as the simulator's humans (`env.scenario: replay`, docs/replay.md, "Playing
+recordings").
 
 On the host, once per env (`load`): the files of `env.replay_files` are read and resampled onto `env.dt`
 (`tgrf_jax.pedestrians`), and every scene is packed into fixed-shape arrays. Each person's continuous track is
