@@ -53,7 +53,7 @@ def test_the_intersections_cross_corridor_is_one_way_and_streams_persist():
         layout = jax.tree_util.tree_map(lambda a, e=e: a[e], state.obstacles)
         for j in np.flatnonzero(active[e])[:3]:
             start, new_goal = INTERSECTION.respawn(
-                jax.random.key(int(e * 100 + j)), env.default_params, layout, state.humans.pos[e, j], goal[e, j], 4
+                jax.random.key(int(e * 100 + j)), env.default_params, layout, state.humans.pos[e, j], goal[e, j], 0.0, 4
             )
             axis = 0 if across[e, j] else 1
             assert np.all(np.sign(np.asarray(new_goal)[:, axis]) == np.sign(goal[e, j, axis]))
@@ -131,6 +131,28 @@ def test_occlusion_hides_a_human_behind_a_wall():
         state = state.replace(obstacles=obstacles_lib.from_polygons([[[-2.0, 1.0], [2.0, 1.0]]]))
         obs = sensing.observe(state, env.default_params, None, env.visible(state, env.default_params))
         assert int(obs.human_mask.sum()) == seen
+
+
+def test_the_doorways_people_leave_in_waves_one_way():
+    from tgrf_jax.env.scenarios.obstacle_layouts import DOORWAY
+
+    env = CrowdNavEnv(dict(scenario="doorway", **SF))
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(5), 32))[1]
+    door_y = np.asarray(state.obstacles.vertices)[:, 0, 1, 1]  # the left wall's inner end
+    pos, goal = np.asarray(state.humans.pos), np.asarray(state.humans.goal)
+    crossing = np.sign(pos[..., 1] - door_y[:, None]) != np.sign(goal[..., 1] - door_y[:, None])
+    assert crossing.any() and np.all(pos[..., 1][crossing] > door_y[:, None].repeat(pos.shape[1], 1)[crossing])
+
+    def crossing_share(t):
+        layout = jax.tree_util.tree_map(lambda a: a[0], state.obstacles)
+        keys = jax.random.split(jax.random.key(1), 600)
+        draw = jax.vmap(lambda k: DOORWAY.respawn(k, env.default_params, layout, pos[0, 0], goal[0, 0], t, 1))
+        start, end = (np.asarray(a)[:, 0] for a in draw(keys))
+        return np.mean(np.sign(start[:, 1] - door_y[0]) != np.sign(end[:, 1] - door_y[0]))
+
+    # during a wave (the first 6 s of every 30) a third of the fresh humans cross; between waves, none
+    assert 0.25 < crossing_share(2.0) < 0.42 and 0.25 < crossing_share(31.0) < 0.42
+    assert crossing_share(10.0) == 0.0 and crossing_share(59.0) == 0.0
 
 
 def test_mix_with_obstacle_scenarios_draws_both_kinds():

@@ -38,7 +38,7 @@ def _new_goal(key, params, layout, humans, tries):
     return jnp.broadcast_to(humans.goal[:, None], (humans.pos.shape[0], tries, 2))
 
 
-def _respawn(key, params, layout, pos, goal, tries):
+def _respawn(key, params, layout, pos, goal, t, tries):
     start = _line(key, (tries,))
     return start, start * jnp.array([1.0, -1.0])
 
@@ -166,3 +166,25 @@ def test_an_obstacle_scenario_carries_the_obstacle_slots():
         assert EnvConfig(scenario="walled_queue").obstacle_slots == SCENARIO_OBSTACLE_SLOTS
     finally:
         registry.unregister("walled_queue")
+
+
+def _clock_respawn(key, params, layout, pos, goal, t, tries):
+    # the fresh human starts at x = the episode time it was respawned at, so the test can read the time back
+    start = jnp.broadcast_to(jnp.stack([t, LINE_Y]), (tries, 2))
+    return start, start * jnp.array([1.0, -1.0])
+
+
+def test_a_respawn_reads_the_episodes_time():
+    clock = dataclasses.replace(QUEUE, respawn=_clock_respawn)
+    register("clock", clock, kind="crowd")
+    try:
+        env = CrowdNavEnv(dict(scenario="clock", num_humans=2, human_policy="social_force", predictor="none"))
+        params = env.default_params
+        _, state = env.reset(jax.random.key(0), params)
+        # human 0 stands on its goal at step 9: the step to step 10 (t = 2.5 s) respawns it
+        humans = state.humans.replace(pos=state.humans.pos.at[0].set(state.humans.goal[0]))
+        state = state.replace(humans=humans, step_count=jnp.asarray(9, state.step_count.dtype))
+        _, after, *_ = env.step(jax.random.key(1), state, jnp.zeros(2), params)
+        np.testing.assert_allclose(np.asarray(after.humans.pos[0]), [10 * float(params.dt), LINE_Y], atol=1e-5)
+    finally:
+        registry.unregister("clock")

@@ -39,8 +39,9 @@ class Scenario:
     robot(key, params, tries) -> Robot: the robot's start and goal (heading pi/2, at rest).
     spawn(key, params, layout, n, tries) -> (pos, goal), each (n, tries, 2): human i's start and goal candidates.
     new_goal(key, params, layout, humans, tries) -> goals (N, tries, 2): a goal change of each human.
-    respawn(key, params, layout, pos, goal, tries) -> (pos, goal), each (tries, 2): a fresh human in place of
-        one that reached its goal (`pos`, `goal`: the arrived human's).
+    respawn(key, params, layout, pos, goal, t, tries) -> (pos, goal), each (tries, 2): a fresh human in place of
+        one that reached its goal (`pos`, `goal`: the arrived human's; `t`: the episode's time in seconds, for
+        flows that change over an episode, such as the doorway's waves).
     layout(key, params, robot, tries) -> (vertices (S, V, 2), num_vertices (S,)), or None: an open space. The
         episode's obstacles in the scenario's S = config.SCENARIO_OBSTACLE_SLOTS slots of up to V =
         config.SCENARIO_OBSTACLE_VERTICES vertices (unused slots: 0 vertices).
@@ -60,7 +61,7 @@ class Scenario:
     robot: Callable[[Any, EnvParams, int], Robot]
     spawn: Callable[[Any, EnvParams, Obstacles, int, int], tuple[Points, Points]]
     new_goal: Callable[[Any, EnvParams, Obstacles, Humans, int], Points]
-    respawn: Callable[[Any, EnvParams, Obstacles, Points, Points, int], tuple[Points, Points]]
+    respawn: Callable[[Any, EnvParams, Obstacles, Points, Points, Any, int], tuple[Points, Points]]
     layout: Callable[[Any, EnvParams, Robot, int], tuple[Points, Any]] | None = None
     speed: float = 1.0
 

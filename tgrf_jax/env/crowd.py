@@ -514,7 +514,15 @@ class CrowdNavEnv:
                 k_goal, humans, robot, params, step_count, cfg.goal_tries, self.scenario_table, state.scenario, layout
             )
             humans = scenarios.respawn_arrived(
-                k_respawn, humans, robot, params, cfg.spawn_tries, self.scenario_table, state.scenario, layout
+                k_respawn,
+                humans,
+                robot,
+                params,
+                cfg.spawn_tries,
+                self.scenario_table,
+                state.scenario,
+                layout,
+                step_count * params.dt,
             )
         progress = stuck.update(state.progress, humans, step_count)
         stuck_now = stuck.stuck(progress, humans, step_count, params.dt)

@@ -259,9 +259,10 @@ def respawn_arrived(
     table: ScenarioTable | None = None,
     index=0,
     layout: Obstacles | None = None,
+    t=0.0,
 ) -> Humans:
     """A human within its own radius of its goal is replaced by a fresh one of the scenario (`random` keeps it
-    where it is with a new goal).
+    where it is with a new goal); `t` is the episode's time in seconds, which the scenario's sampler may read.
 
     One arrival is served per step (the lowest index); another human arriving in the same step waits at its
     goal until the next one. Serving one instead of all N cuts the rejection-sampling work N-fold, and
@@ -273,13 +274,14 @@ def respawn_arrived(
     return cond_gathered(
         jnp.any(_arrived(humans)),
         lambda *args: _respawn_first(*args, tries, table),
-        _unchanged,
+        lambda key, humans, *rest: humans,
         key,
         humans,
         robot,
         params,
         jnp.asarray(index, jnp.int32),
         layout,
+        jnp.asarray(t, jnp.float32),
     )
 
 
@@ -289,7 +291,7 @@ def _arrived(humans: Humans):
 
 
 def _respawn_first(
-    key, humans: Humans, robot: Robot, params: EnvParams, index, layout, tries: int, table: ScenarioTable
+    key, humans: Humans, robot: Robot, params: EnvParams, index, layout, t, tries: int, table: ScenarioTable
 ) -> Humans:
     """Replace the lowest-indexed arrived human (if any) by a fresh one."""
     n = humans.pos.shape[0]
@@ -299,7 +301,7 @@ def _respawn_first(
     radius, v_pref = sample_attributes(k_attr, params)
     v_pref = table.scale_speed(v_pref, index)
     start, goal = table._call(
-        "respawn", index, k_cand, params, layout, humans.pos[who], humans.goal[who], static=(tries,)
+        "respawn", index, k_cand, params, layout, humans.pos[who], humans.goal[who], t, static=(tries,)
     )
     pos, goals, radii, valid = _others_excluding_self(humans, robot, params)
     margin = clearance(start, radius, pos, goals, radii, valid[who], params.spawn_clearance)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from tgrf_jax.config import SCENARIO_OBSTACLE_SLOTS, SCENARIO_OBSTACLE_VERTICES
 from tgrf_jax.env.geometry import norm
 from tgrf_jax.env.scenarios import open_space as open_space_lib
-from tgrf_jax.env.scenarios.open_space import lane_robot, stream_goal
+from tgrf_jax.env.scenarios.open_space import lane_robot, stream_goal, timeless
 from tgrf_jax.env.scenarios.sampling import box, uniform
 from tgrf_jax.scenario_registry import Scenario
 
@@ -85,21 +85,27 @@ def _corridor_respawn(key, params, layout, pos, goal, tries):
     return _keep_right(start, direction), _keep_right(stream_goal(k_goal, params, direction, (tries,), c), direction)
 
 
-CORRIDOR = Scenario(lane_robot, _corridor_spawn, _corridor_new_goal, _corridor_respawn, layout=_corridor_layout)
+CORRIDOR = Scenario(
+    lane_robot, _corridor_spawn, _corridor_new_goal, timeless(_corridor_respawn), layout=_corridor_layout
+)
 
 
-# doorway: a wall across the robot's way at y = y_d in [-1, 1] with one gap 1.6 to 2.4 m wide (the largest ORCA
-# human, 1.32 m across with its safety space, fits through) centred at x_d in [-1, 1]. A third of the humans pass
-# the door, all the same way, towards the robot's start (people leaving a room while the robot enters it); the
-# others walk about on either side of the wall. Two-way traffic through a gap that fits one person at a time jams
-# for good among ORCA humans (they have no convention to yield), so the flow is one-way, as at a marked exit.
+# doorway: a wall across the robot's way at y = y_d in [-1, 1] with one gap 2 to 3 m wide (a double door: two
+# ORCA humans, each up to 1.32 m across with its safety space, pass side by side) centred at x_d in [-1, 1].
+# People leave through the door in waves, towards the robot's start (a room emptying after a lecture while the
+# robot enters it): a third of the humans cross at the start, and for the first 6 s of every 30 a human who
+# reaches their goal is replaced by a crossing one with probability 1/3; the others walk about on either side of
+# the wall. Two-way traffic through a door jams for good among ORCA humans (they have no convention to yield), so
+# the flow is one-way, as at a marked exit; and a steady stream against the robot leaves it no gap to pass (the
+# ORCA robot succeeds in about one episode in four with 20 humans), where people at real doors come in bursts.
 _DOOR_FLOW = -1.0  # the crossing humans' direction along y: from the robot's goal side to its start side
 _CROSSING_SHARE = 1.0 / 3.0
+_WAVE_PERIOD, _WAVE_LENGTH = 30.0, 6.0  # s: a wave starts with the episode and every 30 s after
 
 
 def _doorway_layout(key, params, robot, tries):
     u = uniform(key, (3,))
-    y, x, half = 2.0 * u[0] - 1.0, 2.0 * u[1] - 1.0, 0.8 + 0.4 * u[2]
+    y, x, half = 2.0 * u[0] - 1.0, 2.0 * u[1] - 1.0, 1.0 + 0.5 * u[2]
     r = params.circle_radius + 2.0
     return slots(_segment(-r, y, x - half, y), _segment(x + half, y, r, y))
 
@@ -125,12 +131,13 @@ def _through_door(key, layout, shape, side):
 
 
 def _beside_door(key, params, layout, shape, side):
-    """A point 2.5 to 6.5 m from the wall on its `side` (+1: above), within the arena sideways: far enough that
-    people walking about do not brush past the door, where the crossing stream would press them into it."""
+    """A point 2.5 to 8 m from the wall on its `side` (+1: above), within the crossing circle sideways: far enough
+    that people walking about do not brush past the door, where the crossing stream would press them into it, and
+    spread over the room rather than gathered on the robot's start and goal."""
     k_x, k_y = jax.random.split(key)
-    a = params.arena_size
-    x = uniform(k_x, shape, -a, a)
-    y = _door(layout)[0][1] + side * uniform(k_y, shape, 2.5, 6.5)
+    r = params.circle_radius
+    x = uniform(k_x, shape, -r, r)
+    y = _door(layout)[0][1] + side * uniform(k_y, shape, 2.5, 8.0)
     return jnp.stack([x, y], -1)
 
 
@@ -157,10 +164,12 @@ def _doorway_new_goal(key, params, layout, humans, tries):
     return _beside_door(key, params, layout, (n, tries), side)
 
 
-def _doorway_respawn(key, params, layout, pos, goal, tries):
+def _doorway_respawn(key, params, layout, pos, goal, t, tries):
+    # a crossing human only while a wave lasts, so the door clears between waves
     k_kind, k_pair = jax.random.split(key)
     u = uniform(k_kind, (2,))
-    crossing = jnp.broadcast_to(u[0] < _CROSSING_SHARE, (tries,))
+    in_wave = jnp.mod(t, _WAVE_PERIOD) < _WAVE_LENGTH
+    crossing = jnp.broadcast_to((u[0] < _CROSSING_SHARE) & in_wave, (tries,))
     side = jnp.where(u[1] < 0.5, 1.0, -1.0) * jnp.ones((tries,))
     return _doorway_pair(k_pair, params, layout, (tries,), crossing, side)
 
@@ -226,7 +235,11 @@ def _intersection_respawn(key, params, layout, pos, goal, tries):
 
 
 INTERSECTION = Scenario(
-    lane_robot, _intersection_spawn, _intersection_new_goal, _intersection_respawn, layout=_intersection_layout
+    lane_robot,
+    _intersection_spawn,
+    _intersection_new_goal,
+    timeless(_intersection_respawn),
+    layout=_intersection_layout,
 )
 
 

@@ -26,9 +26,14 @@ def open_space(fn):
     return lambda key, params, layout, *rest: fn(key, params, *rest)
 
 
+def timeless(respawn):
+    """A respawn sampler that has no use for the episode time, as the `Scenario` record calls it (with `t`)."""
+    return lambda key, params, layout, pos, goal, t, tries: respawn(key, params, layout, pos, goal, tries)
+
+
 def crowd(robot, spawn, new_goal, respawn, speed=1.0) -> Scenario:
-    """An open-space scenario from human samplers without the layout argument."""
-    return Scenario(robot, open_space(spawn), open_space(new_goal), open_space(respawn), speed=speed)
+    """An open-space scenario from human samplers without the layout argument (nor, for `respawn`, the time)."""
+    return Scenario(robot, open_space(spawn), open_space(new_goal), timeless(open_space(respawn)), speed=speed)
 
 
 def arena_robot(key, params: EnvParams, tries: int) -> Robot:
