@@ -124,8 +124,9 @@ OVERFLOW_ROBOT = (0.0, -4.0, math.pi / 2, -0.8, 0.8)
 @pytest.fixture(scope="module")
 def sabotaged(tmp_path_factory) -> PolicySource:
     """An untrained recurrent HH Attn with GST predictions whose finite weights overflow on some plausible readings:
-    the robot-velocity rows of one embedding channel are 3e38 (inf from speeds near 1 m/s), and the next layer
-    reads that channel with weight 0 (inf * 0 = NaN)."""
+    the robot-velocity rows of one embedding channel are 3e38 (inf from speeds near 1 m/s), and the two layers
+    that read the embedding read that channel with weight 0 (inf * 0 = NaN; a finite 1e38 * 0 = 0, so slower
+    readings decide normally whatever the other weights)."""
     config = TrainConfig.from_dict(
         {
             "env": {"num_humans": 3, "predictor": "gst", "human_policy": "social_force"},
@@ -140,6 +141,9 @@ def sabotaged(tmp_path_factory) -> PolicySource:
     encoder = np.array(layers["node_encoder"]["kernel"])
     encoder[0] = 0.0
     layers["node_encoder"]["kernel"] = encoder
+    query = np.array(layers["rh_query"]["kernel"])
+    query[0] = 0.0
+    layers["rh_query"]["kernel"] = query
     source = PolicySource(config, params, {"test": "sabotaged"})
     out = export(source, tmp_path_factory.mktemp("sabotaged") / "policy", say=lambda m: None)
     return source, out
