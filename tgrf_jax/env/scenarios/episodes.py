@@ -202,7 +202,7 @@ def change_goals(
     )
 
 
-def _unchanged(key, humans: Humans, robot: Robot, params: EnvParams, index, layout) -> Humans:
+def _unchanged(key, humans: Humans, *rest) -> Humans:
     return humans
 
 
@@ -274,7 +274,7 @@ def respawn_arrived(
     return cond_gathered(
         jnp.any(_arrived(humans)),
         lambda *args: _respawn_first(*args, tries, table),
-        lambda key, humans, *rest: humans,
+        _unchanged,
         key,
         humans,
         robot,

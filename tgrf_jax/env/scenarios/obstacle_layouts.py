@@ -96,8 +96,8 @@ CORRIDOR = Scenario(
 # robot enters it): a third of the humans cross at the start, and for the first 6 s of every 30 a human who
 # reaches their goal is replaced by a crossing one with probability 1/3; the others walk about on either side of
 # the wall. Two-way traffic through a door jams for good among ORCA humans (they have no convention to yield), so
-# the flow is one-way, as at a marked exit; and a steady stream against the robot leaves it no gap to pass (the
-# ORCA robot succeeds in about one episode in four with 20 humans), where people at real doors come in bursts.
+# the flow is one-way, as at a marked exit; and a steady stream against the robot leaves it no gap to pass,
+# where people at real doors come in bursts (docs/walls.md, "The doorway").
 _DOOR_FLOW = -1.0  # the crossing humans' direction along y: from the robot's goal side to its start side
 _CROSSING_SHARE = 1.0 / 3.0
 _WAVE_PERIOD, _WAVE_LENGTH = 30.0, 6.0  # s: a wave starts with the episode and every 30 s after
