@@ -644,3 +644,43 @@ def test_rows_with_a_test_are_played_there_beside_the_compared_policies(tmp_path
     assert any("trained, not yet tested" in line for line in lines)
     assert [line.split("| ")[1] for line in lines if "| test " in line] == ["test 1/1: orca"]
     assert len(json.loads((row / "test_provenance.json").read_text())) == 4
+
+    # A changed test keeps the trained runs: the earlier results move aside, every test plays again.
+    trainings = len(json.loads((row / "provenance.json").read_text())["invocations"])
+    retest = write_experiment(
+        tmp_path / "exp.yaml",
+        seeds=1,
+        grid={"reward.scheme": ["tgrf"]},
+        compare=["orca", "table1-const_vel-tgrf"],
+        rows=[{"name": "mlp", "label": "MLP, 3 s", "test": {"env.time_limit": 3.0}}],
+    )
+    lines.clear()
+    assert runner.reproduce(spec_lib.load(str(retest)), out, log=lines.append) == 0
+    assert len(json.loads((row / "provenance.json").read_text())["invocations"]) == trainings
+    assert any("its test settings changed; its 3 earlier test results" in line for line in lines)
+    assert len([line for line in lines if "| test " in line]) == 3
+    (folder,) = list((row / "superseded_tests").iterdir())
+    assert sorted(str(p.relative_to(folder)) for p in folder.rglob("*.json")) == sorted(
+        [f"runs/{run.name}/test_eval.json", "compare/orca.json", "compare/table1-const_vel-tgrf.json"]
+    )
+    prov = json.loads((row / "test_provenance.json").read_text())
+    (moved,) = [e for e in prov if "superseded" in e]
+    assert moved["test_before"] == ["env.time_limit=2.0"] and moved["test_now"] == ["env.time_limit=3.0"]
+    assert all("env.time_limit=3.0" in e["command"] for e in prov[-3:])
+    assert (run / "test_eval.json").is_file() and (row / "compare" / "orca.json").is_file()
+    recorded = yaml.safe_load((out / "experiment.yaml").read_text())
+    assert recorded["rows"][0]["test"] == ["env.time_limit=3.0"]
+    # the same settings again: nothing moves, nothing plays
+    lines.clear()
+    assert runner.reproduce(spec_lib.load(str(retest)), out, log=lines.append) == 0
+    assert not [line for line in lines if "| test " in line or "settings changed" in line]
+    # a changed training setting is still refused
+    retrain = write_experiment(
+        tmp_path / "exp.yaml",
+        seeds=1,
+        grid={"reward.scheme": ["tgrf"]},
+        compare=["orca", "table1-const_vel-tgrf"],
+        rows=[{"name": "mlp", "label": "MLP", "set": {"ppo.lr": 0.001}, "test": {"env.time_limit": 3.0}}],
+    )
+    with pytest.raises(ConfigError, match="row mlp differ"):
+        runner.reproduce(spec_lib.load(str(retrain)), out)

@@ -90,9 +90,12 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
         check_writable(out, "--out", directory=True)
     if args.export_pretrained and not args.print_plan:
         check_writable(args.export_pretrained, "--export-pretrained", directory=True)
+    retested = {name for name, _, _ in runner.retested_rows(exp, out)}
     if args.print_plan:
         for row in exp.rows:
             state = runner.row_state(out / row.name, row.kind)
+            if row.name in retested:
+                state += ", test settings changed: its tests play again"
             if row.kind == "grid":
                 print(f"{row.name} [{state}]: the finished sweep {spec_lib.portable(row.results)}")
                 continue
@@ -104,6 +107,11 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
             raise ConfigError(
                 f"--out {str(out)!r} does not exist: no rows to report (tgrf-reproduce "
                 f"{args.experiment} --out {out} trains them)"
+            )
+        for name in sorted(retested):
+            print(
+                f"note: row {name}'s test settings changed since its tests ran; the report shows the earlier "
+                f"tests' results until `tgrf-reproduce {args.experiment}` plays them again"
             )
         for path in runner.write_report(whole, out):
             print(path)

@@ -167,8 +167,27 @@ def _load_recorded(recorded: pathlib.Path) -> dict:
     return old
 
 
+def _training_settings(row: dict) -> dict:
+    """A recorded row without its test settings: what its runs were trained with."""
+    return {k: v for k, v in row.items() if k != "test"}
+
+
+def retested_rows(exp: Experiment, out: pathlib.Path) -> list[tuple[str, list, list]]:
+    """(name, recorded test, test now) of the rows recorded in `out` whose test settings differ from `exp`'s."""
+    recorded = out / EXPERIMENT_FILE
+    if not recorded.is_file():
+        return []
+    old_rows = {r["name"]: r for r in _load_recorded(recorded).get("rows", [])}
+    return [
+        (r["name"], old_rows[r["name"]].get("test", []), r.get("test", []))
+        for r in exp.to_dict()["rows"]
+        if r["name"] in old_rows and old_rows[r["name"]].get("test", []) != r.get("test", [])
+    ]
+
+
 def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
-    """The output directory holds this experiment (same rows, seeds and budget) or nothing yet."""
+    """The output directory holds this experiment (same rows, seeds and budget) or nothing yet. A row whose test
+    settings changed is this experiment's still: its tests play again (`retested_rows`)."""
     recorded = out / EXPERIMENT_FILE
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {str(out)!r} is a file, not a directory")
@@ -177,7 +196,11 @@ def check_out_dir(exp: Experiment, out: pathlib.Path) -> None:
         new = exp.to_dict()
         old_rows = {r["name"]: r for r in old.get("rows", [])}
         clash = [k for k in ("config", "seeds", "space", "objective") if old.get(k) != new.get(k)]
-        clash += [f"row {r['name']}" for r in new["rows"] if r["name"] in old_rows and old_rows[r["name"]] != r]
+        clash += [
+            f"row {r['name']}"
+            for r in new["rows"]
+            if r["name"] in old_rows and _training_settings(old_rows[r["name"]]) != _training_settings(r)
+        ]
         if clash:
             raise ConfigError(
                 f"{str(out)!r} holds results of this experiment with other settings ({', '.join(clash)} differ); "
@@ -405,7 +428,6 @@ def _sigterm_as_interrupt():
 
 
 def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: Experiment, layout) -> int:
-    _record(exp, out)
     log_file = open(out / LOG_FILE, "a", buffering=1)
 
     def say(message: str) -> None:
@@ -413,6 +435,15 @@ def _reproduce(exp: Experiment, out: pathlib.Path, log, export_to, report_exp: E
         log_file.write(message + "\n")
 
     try:
+        # before the new settings are recorded: a run stopped in between finds the change again
+        for name, test_before, test_now in retested_rows(exp, out):
+            moved = testing.supersede(out / name, test_before, test_now)
+            if moved:
+                say(
+                    f"[{exp.name}] row {name}: its test settings changed; its {moved[1]} earlier test results are "
+                    f"in {moved[0]}, and its tests play again"
+                )
+        _record(exp, out)
         states = {r.name: row_state(out / r.name, r.kind) for r in exp.rows}
         for r in exp.rows:
             if states[r.name] == "done" and not testing.tested(exp, r, out / r.name):

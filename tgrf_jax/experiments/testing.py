@@ -6,7 +6,9 @@ Per row directory:
 
     runs/<run>/test_eval.json     the run's final policy on the test episodes (tgrf-eval --out)
     compare/<policy>.json         a compared policy on the same episodes
-    test_provenance.json          per evaluation: command, commit, machine, exit code, start and end
+    test_provenance.json          per evaluation: command, commit, machine, exit code, start and end; and
+                                  where the row's test settings changed, which results were moved aside
+    superseded_tests/<time>/      results of earlier test settings, under the same relative paths
 
 The test episodes are the row's final evaluation's (`run.eval_episodes`, `run.eval_seed`), augmentation off as in
 every evaluation, so the runs and the compared policies meet the same people.
@@ -29,6 +31,7 @@ from tgrf_jax.experiments.spec import BASELINES, Experiment, Row, tested_config
 from tgrf_jax.storage.files import write_atomic
 
 TEST_PROVENANCE = "test_provenance.json"
+SUPERSEDED_DIR = "superseded_tests"
 
 
 def _sets(row: Row) -> list[str]:
@@ -100,6 +103,33 @@ def run_tests(
                 say(f"  {row.name} | {line}")
             return proc.returncode
     return 0
+
+
+def supersede(row_dir: pathlib.Path, test_before, test_now) -> tuple[pathlib.Path, int] | None:
+    """Move the row's test results, made under `test_before`, aside to superseded_tests/<time>/ (nothing is
+    deleted) and record the move in test_provenance.json, so that its test stage plays again under `test_now`;
+    returns (the folder, how many files) or None where there were none."""
+    files = sorted(row_dir.glob(f"runs/*/{TEST_FILE}")) + sorted((row_dir / COMPARE_DIR).glob("*.json"))
+    if not files:
+        return None
+    folder = row_dir / SUPERSEDED_DIR / datetime.datetime.now().astimezone().strftime("%Y%m%dT%H%M%S")
+    for path in files:
+        dest = folder / path.relative_to(row_dir)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(path, dest)
+    prov_path = row_dir / TEST_PROVENANCE
+    prov = _read(prov_path)
+    prov.append(
+        {
+            "superseded": str(folder.relative_to(row_dir)),
+            "files": len(files),
+            "test_before": test_before,
+            "test_now": test_now,
+            "at": _now(),
+        }
+    )
+    write_atomic(prov_path, json.dumps(prov, indent=2))
+    return folder, len(files)
 
 
 def _read(path: pathlib.Path) -> list:
