@@ -161,9 +161,13 @@ def test_report_cells_from_evals(tmp_path):
     assert "| With TGRF | MLP | 85.0 ± 7.1 (50.0 ± 5.0) | 90.0 (55.0) | 16.00 (20.00) |" in table
     assert "| crowdnav_pp | MLP | 60.0 ± 14.1 |" in table
     assert cnpp["commit"] == "ccc"  # the CSV's commit: the last invocation's
-    assert "| mlp | 1.5 min | 3 | aaa to ccc | CPU, 16 cores, 1 x GPU; CPU, 2 cores | t3 |" in report.format_report(
-        exp, tmp_path / "out", records
-    )
+    md = report.format_report(exp, tmp_path / "out", records)
+    assert "| mlp | 1.5 min | 3 | aaa to ccc | CPU, 16 cores, 1 x GPU; CPU, 2 cores | t3 |" in md
+    assert "Each cell: ours (the paper's)." in md
+    # an experiment with no published values says nothing of the paper's cells
+    own = spec_lib.load(str(write_experiment(tmp_path / "own.yaml", rows=[{"name": "mlp", "label": "MLP"}])))
+    md = report.format_report(own, tmp_path / "out", report.collect(own, tmp_path / "out"))
+    assert "the paper's" not in md and "SR mean ± sample std over seeds" in md
 
 
 def test_report_header_names_every_compared_axis(tmp_path):

@@ -313,7 +313,8 @@ def format_report(exp: Experiment, out: pathlib.Path, records: list[dict]) -> st
     if exp.layout == "table":
         parts += [
             "",
-            "Each cell: ours (the paper's). SR mean ± sample std over seeds; SR, NT, PL and ITR of the best seed. "
+            ("Each cell: ours (the paper's). " if any(row.paper for row in exp.rows) else "")
+            + "SR mean ± sample std over seeds; SR, NT, PL and ITR of the best seed. "
             "ITR is the reference's itr_future; ITR disc is the share of steps with the nearest human closer "
             "than d_disc (ours only).",
             "",
