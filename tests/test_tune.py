@@ -17,7 +17,7 @@ from tgrf_jax.train.ppo import hparams_from_config
 from tgrf_jax.tune import exploit_explore, num_replaced, parse_objective, parse_space
 from tgrf_jax.tune.pbt import get_values, select_donors
 from tgrf_jax.tune.run import run_tune
-from tgrf_jax.tune.spec import TuneSpec
+from tgrf_jax.tune.spec import TuneSpec, load_tune
 
 # --------------------------------------------------------------------------------------------- space
 
@@ -219,12 +219,23 @@ def test_tune_spec_round_trips_and_draws_members_within_bounds():
         assert m.config.reward.h_disc == pytest.approx(m.values["reward.h_disc"])
 
 
-def _tune(tmp_path, name, **kw):
-    return run_tune(_spec(), tmp_path / name, log=lambda line: None, **kw)
+def _tune(tmp_path, name, layout="batched", **kw):
+    return run_tune(_spec(layout=layout), tmp_path / name, log=lambda line: None, **kw)
 
 
-def test_tune_writes_its_outputs_and_resumes_bit_identically(tmp_path):
-    full = _tune(tmp_path, "full")
+def test_tune_spec_records_its_layout():
+    spec = _spec(layout="sequential")
+    assert TuneSpec.from_dict(spec.to_dict()).layout == "sequential" and "sequential layout" in spec.describe()
+    recorded = spec.to_dict()
+    del recorded["layout"]  # a tune.yaml written before the layout was recorded ran batched
+    assert TuneSpec.from_dict(recorded).layout == "batched"
+    with pytest.raises(ConfigError, match="--layout 'vmapped': allowed batched, sequential"):
+        _spec(layout="vmapped")
+
+
+@pytest.mark.parametrize("layout", ["batched", "sequential"])
+def test_tune_writes_its_outputs_and_resumes_bit_identically(tmp_path, layout):
+    full = _tune(tmp_path, "full", layout)
     assert full.best is not None and np.isfinite(full.best_objective)
     root = tmp_path / "full"
     for name in ("tune.md", "lineage.csv", "schedule.csv", "lineage.png", "schedule.png", "tune.yaml"):
@@ -235,7 +246,7 @@ def test_tune_writes_its_outputs_and_resumes_bit_identically(tmp_path):
     assert (best / "eval.json").is_file() and (best / "checkpoints").is_dir()
 
     # interrupted after update 6, then resumed: the same lineage and the same final states
-    _tune(tmp_path, "cut", stop_after_updates=6)
+    _tune(tmp_path, "cut", layout, stop_after_updates=6)
     assert len((tmp_path / "cut" / "lineage.csv").read_text().splitlines()) == 1 + 4
     resumed = run_tune(None, tmp_path / "cut", resume=True, log=lambda line: None)
     assert resumed.best == full.best and resumed.best_objective == full.best_objective
@@ -246,6 +257,19 @@ def test_tune_writes_its_outputs_and_resumes_bit_identically(tmp_path):
 
     assert final_results(tmp_path / "cut") == final_results(root)
     assert (tmp_path / "cut" / "schedule.csv").read_text() == (root / "schedule.csv").read_text()
+
+
+def test_a_resumed_tune_switches_its_layout_and_records_it(tmp_path):
+    lines = []
+    run_tune(_spec(), tmp_path / "t", log=lambda line: None, stop_after_updates=6)
+    result = run_tune(None, tmp_path / "t", resume=True, layout="sequential", log=lines.append)
+    assert result.best is not None and np.isfinite(result.best_objective)
+    assert "tune continues in the sequential layout (was batched)" in lines
+    assert load_tune(tmp_path / "t").layout == "sequential"
+    lineage = (tmp_path / "t" / "lineage.csv").read_text().splitlines()
+    assert len(lineage) == 1 + 2 * 4 and {row.split(",")[0] for row in lineage[1:]} == {"4", "8"}
+    with pytest.raises(ConfigError, match="switches the layout of a resumed tune"):
+        run_tune(_spec(), tmp_path / "new", layout="sequential", log=lambda line: None)
 
 
 def test_tune_refuses_an_existing_tune_directory(tmp_path):

@@ -51,8 +51,8 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
     parser.add_argument(
         "--layout",
         choices=("batched", "sequential", "auto"),
-        help="the tgrf-sweep layout of the sweep rows this command trains: new rows start in it (default: "
-        "auto, sequential on CPUs), started rows switch to it (default: they keep theirs); tune rows train batched",
+        help="the layout of the sweep and tune rows this command trains: new rows start in it (default: auto, "
+        "sequential on CPUs), started rows switch to it (default: they keep theirs)",
     )
     args = parser.parse_args(argv)
 

@@ -4,6 +4,7 @@ program, members scored on the same test episodes by an objective over evaluatio
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import os
 import pathlib
@@ -57,6 +58,15 @@ def parser() -> argparse.ArgumentParser:
         metavar="N",
         help="use the first N devices, N dividing the population (default: the most devices that divide it)",
     )
+    p.add_argument(
+        "--layout",
+        choices=("batched", "sequential", "auto"),
+        default=None,
+        help="batched: the population as one vmapped program, members split over the devices; sequential: the "
+        "members take turns, each through tgrf-train's own program (faster on CPUs); auto (default for a new "
+        "tune): sequential on CPU devices, else batched. Recorded in tune.yaml: --resume keeps it, --resume with "
+        "--layout switches it (the members then match an unswitched resume up to float rounding)",
+    )
     p.add_argument("--print-plan", action="store_true", help="print the members and exit (nothing is compiled)")
     return p
 
@@ -71,6 +81,8 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
         if args.config or args.space or args.overrides or args.out:
             raise ConfigError("--resume TUNE_DIR takes no config file, --space, --set or --out (its tune.yaml is used)")
         spec = load_tune(args.resume)
+        if args.print_plan and args.layout not in (None, "auto"):
+            spec = dataclasses.replace(spec, layout=args.layout)
     else:
         spec = TuneSpec.create(
             args.config,
@@ -85,6 +97,7 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
             final_episodes=args.final_episodes,
         )
     if args.print_plan:
+        # "auto" is resolved once JAX knows its devices, which the plan does not start
         print(spec.describe())
         return 0
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -93,9 +106,19 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
     start(devices=len(os.sched_getaffinity(0)))
     from tgrf_jax.tune.run import run_tune
 
+    layout = args.layout
+    if layout == "auto" or (layout is None and not args.resume):
+        import jax
+
+        layout = "sequential" if jax.default_backend() == "cpu" else "batched"
     recovery.resume = f"resume with: tgrf-tune --resume {tune_dir}"
     run_tune(
-        None if args.resume else spec, tune_dir, resume=bool(args.resume), log=progress_line, num_devices=args.devices
+        None if args.resume else dataclasses.replace(spec, layout=layout),
+        tune_dir,
+        resume=bool(args.resume),
+        log=progress_line,
+        num_devices=args.devices,
+        layout=layout if args.resume else None,
     )
     return 0
 

@@ -256,8 +256,8 @@ def run_row(
     exp: Experiment, row: Row, row_dir: pathlib.Path, say: Callable[[str], None], layout: str | None = None
 ) -> int:
     """Train (or resume) one row as a tgrf-sweep (tune rows: tgrf-tune) child process; returns its exit code.
-    `layout`: a new sweep row's layout (default auto), or the layout a started one switches to (default: the one
-    it has); a tune trains its population as one batched program."""
+    `layout`: a new row's layout (default auto: sequential on CPUs), or the layout a started one switches to
+    (default: the one it has)."""
     state = row_state(row_dir, row.kind)
     prov_path = row_dir / PROVENANCE_FILE
     if state == "stale":
@@ -274,7 +274,7 @@ def run_row(
         say(f"  {row.name}: {row_problem(row_dir, row.kind)}; its finished {tool[5:]} writes its results again")
     cmd = [sys.executable, "-m", TOOLS[tool]]
     if state in ("resumable", "damaged"):
-        cmd += ["--resume", str(row_dir)] + (["--layout", layout] if layout and tool == "tgrf-sweep" else [])
+        cmd += ["--resume", str(row_dir)] + (["--layout", layout] if layout else [])
     else:
         cmd += args + ["--out", str(row_dir)]
     prov = report.read_provenance(row_dir) or {"wall_s": 0.0, "invocations": []}

@@ -624,7 +624,7 @@ def tune_spec(exp: Experiment, row: Row):
         raise ConfigError(f"experiment {exp.name!r}, row {row.name!r}: {e}") from None
 
 
-def tune_args(exp: Experiment, row: Row) -> list[str]:
+def tune_args(exp: Experiment, row: Row, layout: str = "auto") -> list[str]:
     """The tgrf-tune arguments of a tune row (without --out / --resume)."""
     args = [exp.config] if exp.config else []
     for item in exp.space:
@@ -634,7 +634,7 @@ def tune_args(exp: Experiment, row: Row) -> list[str]:
         args += ["--interval", str(row.interval)]
     for item in row_overrides(exp, row):
         args += ["--set", item]
-    return args
+    return args + ["--layout", layout]
 
 
 def row_command(exp: Experiment, row: Row, layout: str = "auto") -> list[str]:
@@ -642,7 +642,7 @@ def row_command(exp: Experiment, row: Row, layout: str = "auto") -> list[str]:
     if row.kind == "grid":
         raise ConfigError(f"row {row.name!r} reads the finished sweep {portable(row.results)!r}; nothing trains it")
     if row.kind == "tune":
-        return ["tgrf-tune", *tune_args(exp, row)]
+        return ["tgrf-tune", *tune_args(exp, row, layout)]
     return ["tgrf-sweep", *sweep_args(exp, row, layout)]
 
 

@@ -33,7 +33,7 @@ import yaml
 from tgrf_jax.config import ConfigError
 from tgrf_jax.storage.files import write_atomic
 from tgrf_jax.storage.lock import exclusive
-from tgrf_jax.sweep.program import BatchedProgram, evaluate_runs
+from tgrf_jax.sweep.program import BatchedProgram, SequentialProgram, evaluate_runs
 from tgrf_jax.sweep.report import RUNS_DIR
 from tgrf_jax.sweep.run import export_checkpoint
 from tgrf_jax.train.directory import CHECKPOINT_DIR, RunDirectory
@@ -59,18 +59,30 @@ class TuneResult:
     best_objective: float | None  # on the final test
 
 
-class TunedProgram(BatchedProgram):
-    """A sweep's `BatchedProgram` whose chunks end, at every multiple of `interval` updates, with the
-    exploit-and-explore step over the population (`tgrf_jax.tune.pbt`)."""
+class TunedProgram:
+    """The outer loop's `Program` of a tune: the population trained in the spec's layout, each chunk ending, at
+    every multiple of `interval` updates, with the exploit-and-explore step over the population
+    (`tgrf_jax.tune.pbt`).
+
+    Batched: the sweep's `BatchedProgram`, one vmapped program with the members split over the devices; the step
+    runs where the members live, their parameters never passing through the host (the layout for accelerators).
+    Sequential: the sweep's `SequentialProgram`, the members in turn through tgrf-train's own program, faster on
+    CPUs, where host and device memory are one; the step runs on the members stacked in host memory."""
 
     def __init__(self, spec: TuneSpec, devices, say: Callable[[str], None]):
-        super().__init__(spec.members(), devices)
-        if self.g_pad != self.num_runs:
-            raise ConfigError(
-                f"--population {spec.population} must be a multiple of the {self.num_devices} devices the population "
-                f"is split over (or choose the devices with --devices)"
-            )
+        members = spec.members()
+        if spec.layout == "sequential":
+            self.base = SequentialProgram(members, devices)
+        else:
+            self.base = BatchedProgram(members, devices)
+            if self.base.g_pad != self.base.num_runs:
+                raise ConfigError(
+                    f"--population {spec.population} must be a multiple of the {self.base.num_devices} devices the "
+                    f"population is split over (or choose the devices with --devices)"
+                )
         self.spec, self.say = spec, say
+        self.num_runs, self.num_updates = self.base.num_runs, self.base.num_updates
+        self.batch_size, self.config = self.base.batch_size, self.base.config
         self.objective = parse_objective(spec.objective)
         self.eval_runs = spec.evaluation_runs()
         self.update = 0
@@ -78,34 +90,70 @@ class TunedProgram(BatchedProgram):
         self._step = None  # compiled on first use, for the state's placement
         self._key_seed = spec.base["run"]["seed"]
 
+    @property
+    def trainer(self):
+        return self.base.trainer if self.spec.layout == "sequential" else self.base.batched.trainer
+
     def init(self):
         self.update = 0
-        return super().init()
+        return self.base.init()
 
     def restore(self, checkpointer, step: int):
-        state, update = super().restore(checkpointer, step)
+        state, update = self.base.restore(checkpointer, step)
         self.update = update
         return state, update
 
+    def is_compiled(self, state) -> bool:
+        return self.base.is_compiled(state)
+
+    def compile(self, state) -> None:
+        self.base.compile(state)
+
+    def run_metrics(self, metrics) -> list[dict]:
+        return self.base.run_metrics(metrics)
+
+    def host_state(self, state):
+        return self.base.host_state(state)
+
+    def evaluate(self, state, episodes: int, seed: int) -> list[dict]:
+        return self.base.evaluate(state, episodes, seed)
+
+    def describe(self, state) -> str:
+        return self.base.describe(state)
+
+    def member_results(self, state, episodes: int, seed: int, members=None) -> list[dict]:
+        """Each member's (or each of `members`') deterministic policy on the same test episodes of the base
+        config's env: the evaluation metrics the objective reads."""
+        members = range(self.num_runs) if members is None else members
+        if self.spec.layout == "sequential":
+            from tgrf_jax.evaluate import evaluate_state
+
+            net = self.base.trainer.net  # one compiled evaluation for every member
+            return [
+                evaluate_state(self.eval_runs[i].config, state[i], episodes, seed, net=net)["results"]["learned"]
+                for i in members
+            ]
+        evals = evaluate_runs(self.base.batched, self.eval_runs, state.params, self.base.g_pad, episodes, seed)
+        return [evals[i]["results"]["learned"] for i in members]
+
     def scores(self, state) -> list[float]:
         seed = self.spec.base["run"]["eval_seed"] + OBJECTIVE_SEED_OFFSET
-        evals = evaluate_runs(
-            self.batched, self.eval_runs, state.params, self.g_pad, self.spec.objective_episodes, seed
-        )
-        return [self.objective.score(e["results"]["learned"]) for e in evals]
+        return [self.objective.score(r) for r in self.member_results(state, self.spec.objective_episodes, seed)]
+
+    def train_chunk(self, state, n_updates: int):
+        """`n_updates` of every member, without the exploit step."""
+        return self.base.run_chunk(state, n_updates)
 
     def run_chunk(self, state, n_updates: int):
         import jax
         import jax.numpy as jnp
 
-        state, metrics = super().run_chunk(state, n_updates)
+        state, metrics = self.train_chunk(state, n_updates)
         self.update += n_updates
         if self.update % self.spec.interval == 0 and self.update < self.num_updates:
             scores = self.scores(state)
             key = jax.random.fold_in(jax.random.PRNGKey(self._key_seed), self.update)
-            if self._step is None:
-                self._step = _exploit_program(self.spec, jax.tree.map(lambda x: x.sharding, state))
-            state, record = self._step(state, jnp.asarray(scores, jnp.float32), key)
+            state, record = self.exploit(state, jnp.asarray(scores, jnp.float32), key)
             donors, values = np.asarray(record.donor), np.asarray(record.values)
             self.steps.append({"update": self.update, "scores": scores, "donor": donors, "values": values})
             best = int(np.argmax(scores))
@@ -116,17 +164,32 @@ class TunedProgram(BatchedProgram):
             )
         return state, metrics
 
+    def exploit(self, state, scores, key):
+        """The exploit-and-explore step on the population's state; returns the new state and its record."""
+        import jax
 
-def _exploit_program(spec: TuneSpec, shardings):
-    """The exploit-and-explore step compiled for a state placed as `shardings` (each member stays on its device;
-    the copies between devices are the step's only transfers). The state is donated: the population's parameters
-    are updated where they live."""
+        if self.spec.layout == "sequential":
+            if self._step is None:
+                self._step = _exploit_program(self.spec)
+            stacked, record = self._step(self.base.host_state(state), scores, key)
+            stacked = jax.device_get(stacked)
+            place = self.base.trainer.place
+            return [place(jax.tree.map(lambda x, i=i: x[i], stacked)) for i in range(self.num_runs)], record
+        if self._step is None:
+            self._step = _exploit_program(self.spec, jax.tree.map(lambda x: x.sharding, state))
+        return self._step(state, scores, key)
+
+
+def _exploit_program(spec: TuneSpec, shardings=None):
+    """The exploit-and-explore step compiled for a population-batched state placed as `shardings` (each member
+    stays on its device; the copies between devices are the step's only transfers; None: where jit puts it).
+    A placed state is donated: the population's parameters are updated where they live."""
     import jax
 
     step = functools.partial(exploit_explore, dims=spec.dims, fraction=spec.fraction, resample_prob=spec.resample_prob)
-    return jax.jit(
-        lambda state, scores, key: step(state, scores, key), donate_argnums=0, out_shardings=(shardings, None)
-    )
+    if shardings is None:
+        return jax.jit(step)
+    return jax.jit(step, donate_argnums=0, out_shardings=(shardings, None))
 
 
 class LineageWriter:
@@ -192,18 +255,29 @@ def run_tune(
     log: Callable[[str], None] = print,
     stop_after_updates: int | None = None,
     num_devices: int | None = None,
+    layout: str | None = None,
 ) -> TuneResult:
     """Train the population of `spec` in `tune_dir` (or, with `spec=None, resume=True`, continue the tune there
-    from its latest checkpoint); at the end, score the best member on the final test and write the report."""
+    from its latest checkpoint); at the end, score the best member on the final test and write the report.
+    `layout` (with `resume`): continue in this layout instead of the recorded one, which tune.yaml then records
+    (both layouts checkpoint the same stacked state)."""
     tune_dir = pathlib.Path(tune_dir)
+    if layout is not None and not resume:
+        raise ConfigError("layout switches the layout of a resumed tune (a new one takes its spec's layout)")
     if resume:
         loaded = load_tune(tune_dir)
         if spec is not None and spec.to_dict() != loaded.to_dict():
             raise ConfigError(f"{str(tune_dir)!r} holds a different tune than the one given")
         spec = loaded
+        if layout is not None and layout != spec.layout:
+            spec = dataclasses.replace(spec, layout=layout)
+            spec.check(spec.base_config.ppo.num_updates)
     elif (tune_dir / TUNE_FILE).exists():
         raise ConfigError(f"tune directory {str(tune_dir)!r} already holds a tune; use --resume or another --out")
     with exclusive(tune_dir):
+        if resume and layout is not None and layout != loaded.layout:
+            write_atomic(tune_dir / TUNE_FILE, yaml.safe_dump(spec.to_dict(), sort_keys=False))
+            log(f"tune continues in the {layout} layout (was {loaded.layout})")
         return _run_tune(spec, tune_dir, resume, log, stop_after_updates, num_devices)
 
 
@@ -270,14 +344,7 @@ def _run_tune(spec: TuneSpec, tune_dir: pathlib.Path, resume, log, stop_after_up
             )
         scores = program.scores(out.state)
         best = int(np.argmax(scores))
-        final_eval = evaluate_runs(
-            program.batched,
-            program.eval_runs,
-            out.state.params,
-            program.g_pad,
-            spec.final_episodes,
-            spec.base["run"]["eval_seed"],
-        )[best]["results"]["learned"]
+        (final_eval,) = program.member_results(out.state, spec.final_episodes, spec.base["run"]["eval_seed"], [best])
         result.best, result.best_objective = best, program.objective.score(final_eval)
         lineage_rows = _read_csv(tune_dir / LINEAGE_FILE) if (tune_dir / LINEAGE_FILE).is_file() else []
         schedule = ancestry_schedule(spec, lineage_rows, best)

@@ -19,6 +19,7 @@ from tgrf_jax.tune.space import SearchDim, draw_values, parse_space
 
 TUNE_FILE = "tune.yaml"
 MAX_POPULATION = 1_000
+LAYOUTS = ("batched", "sequential")  # how the members share the devices (tgrf_jax.tune.run.TunedProgram)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,6 +33,7 @@ class TuneSpec:
     resample_prob: float = 0.25  # chance that a copied value is drawn afresh instead of perturbed
     objective_episodes: int = 100  # fixed test episodes per member and step
     final_episodes: int = 500  # the best member's separate, larger test
+    layout: str = "batched"  # one vmapped program for the population, or the members in turn (faster on CPUs)
 
     @classmethod
     def create(
@@ -73,6 +75,8 @@ class TuneSpec:
                 f"--interval {self.interval}: allowed 1 .. {num_updates - 1} (updates between exploit steps; "
                 f"the run has {num_updates} updates)"
             )
+        if self.layout not in LAYOUTS:
+            raise ConfigError(f"--layout {self.layout!r}: allowed {', '.join(LAYOUTS)}")
         for name in ("objective_episodes", "final_episodes"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"--{name.replace('_', '-')} {getattr(self, name)}: must be >= 1")
@@ -120,6 +124,7 @@ class TuneSpec:
             "resample_prob": self.resample_prob,
             "objective_episodes": self.objective_episodes,
             "final_episodes": self.final_episodes,
+            "layout": self.layout,
             "members": [{"name": m.name, "seed": m.seed, "values": m.values} for m in self.members()],
             "base": self.base,
         }
@@ -130,6 +135,7 @@ class TuneSpec:
             base = TrainConfig.from_dict(data["base"]).to_dict()
             dims = parse_space(list(data["space"]), base)
             options = {k: data[k] for k in ("fraction", "resample_prob", "objective_episodes", "final_episodes")}
+            options["layout"] = str(data.get("layout", "batched"))  # tunes written before it was recorded: batched
             spec = cls(base, dims, int(data["population"]), str(data["objective"]), int(data["interval"]), **options)
         except (KeyError, TypeError, ValueError) as e:
             raise ConfigError(f"{TUNE_FILE} is malformed: {e!r}") from None
@@ -140,7 +146,7 @@ class TuneSpec:
         lines = [
             f"population {self.population}, exploit every {self.interval} updates (worst {self.replaced} take the "
             f"best {self.replaced}'s weights and hyper-parameters), objective: {self.objective}, "
-            f"{self.objective_episodes} test episodes per member"
+            f"{self.objective_episodes} test episodes per member, {self.layout} layout"
         ]
         lines += [f"  search {d.spec()}" for d in self.dims]
         for m in self.members():
