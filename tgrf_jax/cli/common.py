@@ -68,6 +68,21 @@ def add_pretrained_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_layout_arg(parser: argparse.ArgumentParser, help: str) -> None:
+    """--layout of the tools that train several runs (tgrf-sweep, tgrf-tune); `resolve_layout` reads it."""
+    parser.add_argument("--layout", choices=("batched", "sequential", "auto"), default=None, help=help)
+
+
+def resolve_layout(layout: str | None, multi_host: bool = False) -> str | None:
+    """'auto' as the runs' devices decide it: sequential on CPU devices of one host (XLA:CPU trains one program at a
+    time faster than their vmapped batch), batched elsewhere. JAX must be started (`start`)."""
+    if layout != "auto":
+        return layout
+    import jax
+
+    return "sequential" if jax.default_backend() == "cpu" and not multi_host else "batched"
+
+
 def load_playable(source: str | None, overrides: list[str], tool: str, pretrained: str | None = None) -> Playable:
     """Resolve RUN_DIR|CONFIG (or a pretrained policy) plus `--set` (only env.* and reward.* apply); raises
     ConfigError. A tgrf-train config file is checked whole and its env / reward sections are played."""

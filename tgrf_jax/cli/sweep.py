@@ -11,10 +11,12 @@ import sys
 from tgrf_jax.cli.common import (
     Recovery,
     add_config_args,
+    add_layout_arg,
     check_jax,
     check_writable,
     command_line,
     progress_line,
+    resolve_layout,
     start,
 )
 from tgrf_jax.config import ConfigError, griddable_fields
@@ -66,11 +68,9 @@ def parser() -> argparse.ArgumentParser:
         metavar="N",
         help="use the first N devices (default: all of them, across all hosts)",
     )
-    p.add_argument(
-        "--layout",
-        choices=("batched", "sequential", "auto"),
-        default=None,
-        help="batched (default): each device trains its runs as one vmapped program; sequential: the runs "
+    add_layout_arg(
+        p,
+        "batched (default): each device trains its runs as one vmapped program; sequential: the runs "
         "take turns, each through tgrf-train's own program (bit-identical to tgrf-train; faster for "
         "large configs on CPUs); auto: sequential on CPU devices, else batched. Recorded in "
         "sweep.yaml: --resume keeps it, --resume with --layout switches it (a sweep begun on a GPU "
@@ -160,11 +160,7 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
         init_distributed(args.coordinator, args.num_processes, args.process_id)
     from tgrf_jax.sweep.run import run_sweep
 
-    layout = args.layout
-    if layout == "auto":
-        import jax
-
-        layout = "sequential" if jax.default_backend() == "cpu" and not distributed else "batched"
+    layout = resolve_layout(args.layout, multi_host=distributed)
     if not args.resume:
         spec = dataclasses.replace(spec, layout=layout or spec.layout)
 

@@ -13,10 +13,12 @@ import sys
 from tgrf_jax.cli.common import (
     Recovery,
     add_config_args,
+    add_layout_arg,
     check_jax,
     check_writable,
     command_line,
     progress_line,
+    resolve_layout,
     start,
 )
 from tgrf_jax.config import ConfigError
@@ -58,11 +60,9 @@ def parser() -> argparse.ArgumentParser:
         metavar="N",
         help="use the first N devices, N dividing the population (default: the most devices that divide it)",
     )
-    p.add_argument(
-        "--layout",
-        choices=("batched", "sequential", "auto"),
-        default=None,
-        help="batched: the population as one vmapped program, members split over the devices; sequential: the "
+    add_layout_arg(
+        p,
+        "batched: the population as one vmapped program, members split over the devices; sequential: the "
         "members take turns, each through tgrf-train's own program (faster on CPUs); auto (default for a new "
         "tune): sequential on CPU devices, else batched. Recorded in tune.yaml: --resume keeps it, --resume with "
         "--layout switches it (the members then match an unswitched resume up to float rounding)",
@@ -81,8 +81,6 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
         if args.config or args.space or args.overrides or args.out:
             raise ConfigError("--resume TUNE_DIR takes no config file, --space, --set or --out (its tune.yaml is used)")
         spec = load_tune(args.resume)
-        if args.print_plan and args.layout not in (None, "auto"):
-            spec = dataclasses.replace(spec, layout=args.layout)
     else:
         spec = TuneSpec.create(
             args.config,
@@ -98,7 +96,7 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
         )
     if args.print_plan:
         # "auto" is resolved once JAX knows its devices, which the plan does not start
-        print(spec.describe())
+        print(spec.describe(layout=args.layout or (spec.layout if args.resume else "auto")))
         return 0
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     tune_dir = pathlib.Path(args.resume or args.out or f"runs/{stamp}_tune_{spec.base['run']['name']}")
@@ -106,11 +104,7 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
     start(devices=len(os.sched_getaffinity(0)))
     from tgrf_jax.tune.run import run_tune
 
-    layout = args.layout
-    if layout == "auto" or (layout is None and not args.resume):
-        import jax
-
-        layout = "sequential" if jax.default_backend() == "cpu" else "batched"
+    layout = resolve_layout(args.layout or (None if args.resume else "auto"))
     recovery.resume = f"resume with: tgrf-tune --resume {tune_dir}"
     run_tune(
         None if args.resume else dataclasses.replace(spec, layout=layout),

@@ -142,11 +142,12 @@ class TuneSpec:
         spec.check(spec.base_config.ppo.num_updates)
         return spec
 
-    def describe(self) -> str:
+    def describe(self, layout: str | None = None) -> str:
+        """The plan; `layout`: the one to name instead of the spec's (a plan's 'auto', a resume's switch)."""
         lines = [
             f"population {self.population}, exploit every {self.interval} updates (worst {self.replaced} take the "
             f"best {self.replaced}'s weights and hyper-parameters), objective: {self.objective}, "
-            f"{self.objective_episodes} test episodes per member, {self.layout} layout"
+            f"{self.objective_episodes} test episodes per member, {layout or self.layout} layout"
         ]
         lines += [f"  search {d.spec()}" for d in self.dims]
         for m in self.members():
