@@ -1,4 +1,4 @@
-"""tgrf-tune: population-based training of any traced fields (TGRF's h and sigma, PPO's rates, ...) as one sweep
+"""tgrf-tune: population-based training of any traced fields (TGRF's h and sigma, PPO's rates, ...) as a sweep's
 program, members scored on the same test episodes by an objective over evaluation metrics."""
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from tgrf_jax.config import ConfigError
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tgrf-tune",
-        description="Tune traced fields by population-based training: P members train as one sweep program; every "
+        description="Tune traced fields by population-based training: P members train as a sweep does; every "
         "--interval updates the worst take the weights and hyper-parameters of the best, then perturb them.",
     )
     add_config_args(p, "YAML config as for tgrf-train (default: the embedded default)")

@@ -1,5 +1,5 @@
-"""`run_tune`: a population trained as one sweep program, with an exploit-and-explore step every `interval`
-updates, in a `RunDirectory` whose root is the tune directory.
+"""`run_tune`: a population trained as a sweep's program (batched, or the members in turn), with an
+exploit-and-explore step every `interval` updates, in a `RunDirectory` whose root is the tune directory.
 
 Tune directory:
     tune.yaml              the tune: space, population, objective, schedule, each member's seed and start values
