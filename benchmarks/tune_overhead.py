@@ -97,7 +97,8 @@ def main(argv=None) -> dict:
         args.config, args.population = args.config or "configs/tiny.yaml", 4
     configure_cpu(devices=len(os.sched_getaffinity(0)))
 
-    from tgrf_jax.tune.spec import LAYOUTS, TuneSpec
+    from tgrf_jax.sweep.grid import LAYOUTS
+    from tgrf_jax.tune.spec import TuneSpec
 
     layouts = [name.strip() for name in args.layouts.split(",") if name.strip()]
     unknown = [name for name in layouts if name not in LAYOUTS]

@@ -69,8 +69,11 @@ def add_pretrained_arg(parser: argparse.ArgumentParser) -> None:
 
 
 def add_layout_arg(parser: argparse.ArgumentParser, help: str) -> None:
-    """--layout of the tools that train several runs (tgrf-sweep, tgrf-tune); `resolve_layout` reads it."""
-    parser.add_argument("--layout", choices=("batched", "sequential", "auto"), default=None, help=help)
+    """--layout of the tools that train several runs (tgrf-sweep, tgrf-tune, tgrf-reproduce); `resolve_layout`
+    reads it."""
+    from tgrf_jax.sweep.grid import LAYOUTS
+
+    parser.add_argument("--layout", choices=(*LAYOUTS, "auto"), default=None, help=help)
 
 
 def resolve_layout(layout: str | None, multi_host: bool = False) -> str | None:

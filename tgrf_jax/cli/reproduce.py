@@ -7,7 +7,7 @@ import pathlib
 import shlex
 import sys
 
-from tgrf_jax.cli.common import Recovery, check_jax, check_writable, command_line
+from tgrf_jax.cli.common import Recovery, add_layout_arg, check_jax, check_writable, command_line
 from tgrf_jax.config import ConfigError
 from tgrf_jax.experiments import spec as spec_lib
 
@@ -48,10 +48,9 @@ def main(argv: list[str] | None, recovery: Recovery) -> int:
         help="export the best seed's policy of every finished row and compared value to "
         "DIR/<experiment>-<row>-<value> (tgrf-eval --pretrained plays it)",
     )
-    parser.add_argument(
-        "--layout",
-        choices=("batched", "sequential", "auto"),
-        help="the layout of the sweep and tune rows this command trains: new rows start in it (default: auto, "
+    add_layout_arg(
+        parser,
+        "the layout of the sweep and tune rows this command trains: new rows start in it (default: auto, "
         "sequential on CPUs), started rows switch to it (default: they keep theirs)",
     )
     args = parser.parse_args(argv)

@@ -12,14 +12,13 @@ import yaml
 
 from tgrf_jax.config import ConfigError, TrainConfig
 from tgrf_jax.fields import apply_overrides, load_yaml, set_dotted
-from tgrf_jax.sweep.grid import RunSpec
+from tgrf_jax.sweep.grid import LAYOUTS, RunSpec
 from tgrf_jax.tune.objective import parse_objective
 from tgrf_jax.tune.pbt import num_replaced
 from tgrf_jax.tune.space import SearchDim, draw_values, parse_space
 
 TUNE_FILE = "tune.yaml"
 MAX_POPULATION = 1_000
-LAYOUTS = ("batched", "sequential")  # how the members share the devices (tgrf_jax.tune.run.TunedProgram)
 
 
 @dataclasses.dataclass(frozen=True)
