@@ -116,3 +116,38 @@ def test_suite_plays_the_real_scenes_when_the_recordings_are_there(tmp_path, mon
     # a fold plays its own file only: its episodes differ from the next fold's
     assert len({r["min_dist_human"] for r in real}) > 1
     assert any(r["success_rate"] > 0 for r in real)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["env.scenario=replay", "env.human_policy=replay"],
+        ["env.scenario=mix", "env.mix_scenarios=[replay,circle_crossing]", "env.human_policy=orca"],
+    ],
+    ids=["replay", "mix_with_replay"],
+)
+def test_suite_plays_policies_trained_among_recordings_on_the_synthetic_rows(overrides, tmp_path, capsys):
+    from tgrf_jax.cli.suite import SYNTHETIC_HUMANS, run_suite, suite_env_config
+    from tgrf_jax.policies import baseline
+
+    config = TrainConfig.from_yaml(TINY, ["env.time_limit=3", "env.replay_files=[eth,hotel]", *overrides])
+    env_config = suite_env_config(config.env, 5, ("circle_crossing",))
+    assert env_config.replay_files is None and env_config.replay_weights is None
+    expected = SYNTHETIC_HUMANS if config.env.human_policy == "replay" else config.env.human_policy
+    assert env_config.human_policy == expected
+    rows = run_suite(
+        config,
+        {"straight": baseline("straight")},
+        tmp_path / "suite",
+        episodes=2,
+        seed=0,
+        sizes=(5,),
+        scenarios=("circle_crossing",),
+        real=False,
+        thumbnails=False,
+    )
+    assert [(r["scenario"], r["humans"]) for r in rows] == [("circle_crossing", 5)]
+    printed = capsys.readouterr().out
+    assert ("the synthetic rows' humans move as env.human_policy = 'orca'" in printed) == (
+        config.env.human_policy == "replay"
+    )

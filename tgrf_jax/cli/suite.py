@@ -22,6 +22,7 @@ import time
 
 SUITE_SIZES = (5, 10, 20, 30)
 RECORDED = "recorded"  # the humans column of the real scenes' rows: the people of the recording
+SYNTHETIC_HUMANS = "orca"  # how the synthetic rows' humans move for a policy trained among replayed recordings
 # Columns of the Markdown table (the CSV holds every metric).
 TABLE_COLUMNS = (
     ("success_rate", "SR", "{:.1%}"),
@@ -41,9 +42,13 @@ TABLE_COLUMNS = (
 
 
 def suite_env_config(env_config, capacity: int, scenarios=None):
-    """The suite's env: every scenario (or those of `scenarios`) selectable by weights, `capacity` human slots."""
+    """The suite's env: every scenario (or those of `scenarios`) selectable by weights, `capacity` human slots.
+    The humans move as the config says; a policy trained among recordings walked exactly (`human_policy:
+    replay`, which has no model of its own to move synthetic crowds) meets ORCA humans, the simulator's default,
+    and the recordings a config was trained on are left to the real scenes' rows."""
     from tgrf_jax.config import SCENARIOS
 
+    human_policy = SYNTHETIC_HUMANS if env_config.human_policy == "replay" else env_config.human_policy
     return dataclasses.replace(
         env_config,
         scenario="mix",
@@ -52,6 +57,9 @@ def suite_env_config(env_config, capacity: int, scenarios=None):
         active_humans_min=None,
         active_humans_max=None,
         scenario_weights=None,
+        human_policy=human_policy,
+        replay_files=None,
+        replay_weights=None,
     )
 
 
@@ -131,6 +139,11 @@ def run_suite(
     if scenarios:
         env = CrowdNavEnv(suite_env_config(config.env, capacity, scenarios), config.reward)
         base = env.default_params
+        if config.env.human_policy == "replay":
+            log(
+                "suite: the policy was trained among recorded people walking their recordings; the synthetic rows' "
+                f"humans move as env.human_policy = {SYNTHETIC_HUMANS!r}, the simulator's default"
+            )
     played = [n for n in sizes if n <= capacity]
     skipped = [n for n in sizes if n > capacity]
     if skipped and scenarios:
