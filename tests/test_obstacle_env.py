@@ -60,6 +60,22 @@ def test_the_intersections_cross_corridor_is_one_way_and_streams_persist():
             assert np.all(np.abs(np.asarray(new_goal)[:, axis]) > np.abs(np.asarray(new_goal)[:, 1 - axis]))
 
 
+def test_the_corridors_two_streams_walk_separate_lanes_that_fit_between_the_walls():
+    from tgrf_jax.env.scenarios.obstacle_layouts import _LANE_OFFSET
+
+    env = CrowdNavEnv(dict(scenario="corridor", **SF))
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(3), 64))[1]
+    half_width = np.asarray(state.obstacles.vertices)[:, 1, 0, 0]  # the right-hand wall at x = +w
+    assert half_width.min() >= 1.75 and half_width.max() <= 2.5  # two lanes of the largest ORCA humans fit
+    active = np.asarray(state.humans.active)
+    for points in (np.asarray(state.humans.pos), np.asarray(state.humans.goal)):
+        direction = np.sign(np.asarray(state.humans.goal)[..., 1])
+        x = points[..., 0] * direction  # distance right of the centre line, facing the way the human walks
+        assert x[active].min() >= _LANE_OFFSET - 1e-5  # the streams never share the centre line
+        lane_edge = np.broadcast_to(half_width[:, None] - 0.6, x.shape)  # clear of the walls
+        assert np.all(np.abs(points[..., 0])[active] <= lane_edge[active] + 1e-5)
+
+
 def test_scenario_layouts_vary_between_episodes(scenario_resets):
     name, env, obs, state = scenario_resets
     vertices = np.asarray(state.obstacles.vertices)

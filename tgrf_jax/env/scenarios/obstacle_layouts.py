@@ -22,6 +22,12 @@ from tgrf_jax.env.scenarios.sampling import box, uniform
 from tgrf_jax.scenario_registry import Scenario
 
 _WALL_CLEARANCE = 0.6  # how far from a wall the humans' lanes stay (the largest human radius plus a margin)
+# A corridor's half-width: two lanes of the largest ORCA humans (1.32 m across with their safety space) side by side
+# with room to pass a slower walker; below 3.5 m the two streams of 20 humans overlap, meet head-on and lock.
+_CORRIDOR_HALF_WIDTH = (1.75, 2.5)
+# How far off the centre line a lane starts, so that the two streams walk past each other rather than into each
+# other (ORCA humans meeting head-on in a crowded corridor freeze).
+_LANE_OFFSET = 0.6
 
 
 def slots(*polygons):
@@ -45,11 +51,11 @@ def _segment(x0, y0, x1, y1):
     return jnp.stack([jnp.stack([x0, y0]), jnp.stack([x1, y1])]).astype(jnp.float32)
 
 
-# corridor: two walls at x = -w and x = +w along the robot's way (a corridor 2.5 to 4 m wide, w drawn per
+# corridor: two walls at x = -w and x = +w along the robot's way (a corridor 3.5 to 5 m wide, w drawn per
 # episode); humans walk it both ways in lanes clear of the walls, each keeping to its right-hand half (two
 # streams that share the whole width meet head-on and, among ORCA humans, jam for good: people form lanes).
 def _corridor_layout(key, params, robot, tries):
-    w = uniform(key, (), 1.25, 2.0)
+    w = uniform(key, (), *_CORRIDOR_HALF_WIDTH)
     r = params.circle_radius
     return slots(_segment(-w, r, -w, -r), _segment(w, -r, w, r))
 
@@ -59,30 +65,34 @@ def _corridor_lane(layout):
     return jnp.maximum(layout.vertices[1, 0, 0] - _WALL_CLEARANCE, 0.1)
 
 
-def _keep_right(points, direction):
-    """Points (..., 2) moved into the right-hand half of the corridor for walking along y in `direction`."""
-    return jnp.stack([direction * jnp.abs(points[..., 0]), points[..., 1]], -1)
+def _keep_right(points, direction, half_width):
+    """Points (..., 2) drawn across a lane's [-half_width, half_width] moved into the right-hand lane for walking
+    along y in `direction`: |x| from `_LANE_OFFSET` to `half_width`, uniform as drawn."""
+    inner = jnp.minimum(_LANE_OFFSET, half_width)
+    x = inner + jnp.abs(points[..., 0]) / half_width * (half_width - inner)
+    return jnp.stack([direction * x, points[..., 1]], -1)
 
 
 def _corridor_spawn(key, params, layout, n, tries):
     k_pos, k_goal = jax.random.split(key)
     c, r = _corridor_lane(layout), params.circle_radius
     direction = jnp.where(jnp.arange(n) % 2 == 0, 1.0, -1.0)[:, None]
-    start = _keep_right(box(k_pos, (n, tries), -c, c, -r, r), direction)
-    return start, _keep_right(stream_goal(k_goal, params, direction, (n, tries), c), direction)
+    start = _keep_right(box(k_pos, (n, tries), -c, c, -r, r), direction, c)
+    return start, _keep_right(stream_goal(k_goal, params, direction, (n, tries), c), direction, c)
 
 
 def _corridor_new_goal(key, params, layout, humans, tries):
     direction = jnp.sign(humans.goal[:, 1:2])
-    goal = stream_goal(key, params, direction, (humans.pos.shape[0], tries), _corridor_lane(layout))
-    return _keep_right(goal, direction)
+    c = _corridor_lane(layout)
+    return _keep_right(stream_goal(key, params, direction, (humans.pos.shape[0], tries), c), direction, c)
 
 
 def _corridor_respawn(key, params, layout, pos, goal, tries):
     k_pos, k_goal = jax.random.split(key)
     direction, c = jnp.sign(goal[1]), _corridor_lane(layout)
     start = stream_goal(k_pos, params, -direction, (tries,), c)
-    return _keep_right(start, direction), _keep_right(stream_goal(k_goal, params, direction, (tries,), c), direction)
+    goal = stream_goal(k_goal, params, direction, (tries,), c)
+    return _keep_right(start, direction, c), _keep_right(goal, direction, c)
 
 
 CORRIDOR = Scenario(
@@ -177,14 +187,14 @@ def _doorway_respawn(key, params, layout, pos, goal, t, tries):
 DOORWAY = Scenario(lane_robot, _doorway_spawn, _doorway_new_goal, _doorway_respawn, layout=_doorway_layout)
 
 
-# intersection: two corridors of half-width w (1.25 to 2 m) crossing at the origin, walled by four corner blocks,
-# so people coming along the cross corridor are hidden until they reach the crossing (a blind corner). The robot
-# goes straight up its corridor; two humans in three walk the cross corridor, the others the robot's. Four streams
-# meeting in the crossing (both corridors two-way) lock among ORCA humans, each waiting on the next, and the queues
-# reach back along the arms; so the cross corridor is one-way, its direction drawn per episode, and a human who
-# reaches their goal walks their own stream again.
+# intersection: two corridors of half-width w (1.75 to 2.5 m, as the corridor's) crossing at the origin, walled by
+# four corner blocks, so people coming along the cross corridor are hidden until they reach the crossing (a blind
+# corner). The robot goes straight up its corridor; two humans in three walk the cross corridor, the others the
+# robot's. Four streams meeting in the crossing (both corridors two-way) lock among ORCA humans, each waiting on
+# the next, and the queues reach back along the arms; so the cross corridor is one-way, its direction drawn per
+# episode, and a human who reaches their goal walks their own stream again.
 def _intersection_layout(key, params, robot, tries):
-    w = uniform(key, (), 1.25, 2.0)
+    w = uniform(key, (), *_CORRIDOR_HALF_WIDTH)
     r = params.circle_radius
     half, mid = 0.5 * (r - w), 0.5 * (r + w)
     return slots(*(box_polygon(sx * mid, sy * mid, half, half) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))))
@@ -201,8 +211,8 @@ def _arm_pair(key, params, layout, shape, across, direction):
     c = _intersection_lane(layout)
     # keeping right: +x along the cross corridor has its right-hand side at -y, after the swap below
     right = jnp.where(across, -direction, direction)
-    start = _keep_right(stream_goal(k_s, params, -direction, shape, c), right)
-    goal = _keep_right(stream_goal(k_g, params, direction, shape, c), right)
+    start = _keep_right(stream_goal(k_s, params, -direction, shape, c), right, c)
+    goal = _keep_right(stream_goal(k_g, params, direction, shape, c), right, c)
     swap = lambda p: jnp.where(across[..., None], p[..., ::-1], p)  # noqa: E731  (x, y) -> (y, x)
     return swap(start), swap(goal)
 
