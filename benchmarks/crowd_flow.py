@@ -43,11 +43,14 @@ def flow(scenario: str, routing: bool, human_policy: str, envs: int, steps: int,
 
     start = time.perf_counter()
     stuck, active, reassigned, unreachable = (np.asarray(x) for x in run(jax.random.key(seed)))
+    # a jam, once formed, tends to stay: the rate by quarter of the window shows whether it grows
+    quarters = [slice(q * steps // 4, (q + 1) * steps // 4) for q in range(4)]
     return {
         "scenario": scenario,
         "human_policy": human_policy,
         "routing": routing,
         "stuck_rate_pct": round(100.0 * stuck.sum() / active.sum(), 3),
+        "stuck_rate_by_quarter_pct": [round(100.0 * stuck[q].sum() / max(active[q].sum(), 1), 2) for q in quarters],
         "unreachable_rate_pct": round(100.0 * unreachable.sum() / active.sum(), 3),
         "goals_reassigned_per_env": round(float(reassigned.sum()) / envs, 2),
         "seconds": round(time.perf_counter() - start, 1),
@@ -65,14 +68,19 @@ def main(argv=None):
     args = parser.parse_args(argv)
     info = machine_info()
     print(f"machine: {info['cpu']} x{info['cpu_count']}, jax {info['jax']} on {info['backend']}")
-    print(f"{'scenario':>18} {'routing':>8} {'stuck %':>8} {'unreachable %':>14} {'new goals/env':>14}")
+    print(
+        f"{'scenario':>18} {'routing':>8} {'stuck %':>8} {'by quarter of the window (%)':>28} {'unreachable %':>14} "
+        f"{'new goals/env':>14}"
+    )
     rows = []
     for scenario in args.scenarios:
         for routing in (True, False):
             row = flow(scenario, routing, args.human_policy, args.envs, args.steps, args.seed)
             rows.append(row)
             print(
-                f"{scenario:>18} {str(routing):>8} {row['stuck_rate_pct']:>8.2f} {row['unreachable_rate_pct']:>14.2f} "
+                f"{scenario:>18} {str(routing):>8} {row['stuck_rate_pct']:>8.2f} "
+                f"{' / '.join(f'{x:.2f}' for x in row['stuck_rate_by_quarter_pct']):>28} "
+                f"{row['unreachable_rate_pct']:>14.2f} "
                 f"{row['goals_reassigned_per_env']:>14.2f}",
                 flush=True,
             )
