@@ -52,7 +52,7 @@ def _segment(x0, y0, x1, y1):
 
 
 # corridor: two walls at x = -w and x = +w along the robot's way (a corridor 3.5 to 5 m wide, w drawn per
-# episode); humans walk it both ways in lanes clear of the walls, each keeping to its right-hand half (two
+# episode); humans walk it both ways, each in its right-hand lane, clear of the walls and off the centre line (two
 # streams that share the whole width meet head-on and, among ORCA humans, jam for good: people form lanes).
 def _corridor_layout(key, params, robot, tries):
     w = uniform(key, (), *_CORRIDOR_HALF_WIDTH)
