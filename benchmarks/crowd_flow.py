@@ -63,7 +63,7 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=200, help="steps per env (200 = one 50 s episode)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--human-policy", default="orca", choices=["orca", "social_force"])
-    parser.add_argument("--scenarios", nargs="*", default=list(OBSTACLE_SCENARIOS))
+    parser.add_argument("--scenarios", nargs="*", default=list(OBSTACLE_SCENARIOS), choices=list(OBSTACLE_SCENARIOS))
     parser.add_argument("--out", help="write results as JSON here")
     args = parser.parse_args(argv)
     info = machine_info()
