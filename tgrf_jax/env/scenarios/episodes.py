@@ -26,6 +26,7 @@ from tgrf_jax.env.scenarios.sampling import (
     clearance,
     obstacle_margin,
     park,
+    require_room,
     sample_attributes,
     uniform,
     with_obstacles,
@@ -136,7 +137,7 @@ def spawn_humans(
             candidates[i, :, :2], radius[i], others_pos, others_goal, others_radius, placed, params.spawn_clearance
         )
         if room is not None:
-            margin = jnp.minimum(margin, room[i])
+            margin = require_room(margin, room[i])
         pick = choose(candidates[i], margin)
         carry = (
             others_pos.at[i + 1].set(pick[:2]),

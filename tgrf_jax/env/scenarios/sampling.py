@@ -90,10 +90,24 @@ def obstacle_margin(candidates, own_radius, layout: Obstacles | None, gap):
     return obstacles_lib.clearance(candidates, layout) - own_radius[..., None] - gap
 
 
+# Below any agent-spacing margin a real scene produces (squared metres): ranks obstacle violations last.
+_INSIDE_OBSTACLE = -1.0e6
+
+
+def require_room(margin, room):
+    """An agent-spacing margin (squared metres) that also requires `room` (metres, `obstacle_margin`) >= 0.
+
+    Room from the obstacles is a hard requirement even in `choose`'s fallback: a start or goal a little close to
+    another human sorts itself out as the crowd moves, one inside a box never does (its goal unreachable, or the
+    human stuck in the wall). So every candidate without room ranks below every candidate with room, and among
+    themselves by room."""
+    return jnp.where(room >= 0.0, margin, _INSIDE_OBSTACLE + room)
+
+
 def with_obstacles(margin, candidates, own_radius, layout, gap):
-    """An agent-spacing margin (squared metres) also requiring room from the obstacles."""
+    """An agent-spacing margin also requiring room from the obstacles (`require_room`)."""
     room = obstacle_margin(candidates, own_radius, layout, gap)
-    return margin if room is None else jnp.minimum(margin, room)
+    return margin if room is None else require_room(margin, room)
 
 
 def choose(candidates, margin):
