@@ -137,7 +137,7 @@ def spawn_humans(
             candidates[i, :, :2], radius[i], others_pos, others_goal, others_radius, placed, params.spawn_clearance
         )
         if room is not None:
-            margin = require_room(margin, room[i])
+            margin = require_room(margin, room[i], params.spawn_clearance)
         pick = choose(candidates[i], margin)
         carry = (
             others_pos.at[i + 1].set(pick[:2]),

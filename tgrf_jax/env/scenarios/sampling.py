@@ -90,24 +90,24 @@ def obstacle_margin(candidates, own_radius, layout: Obstacles | None, gap):
     return obstacles_lib.clearance(candidates, layout) - own_radius[..., None] - gap
 
 
-# Below any agent-spacing margin a real scene produces (squared metres): ranks obstacle violations last.
+# Below any agent-spacing margin a real scene produces (squared metres): ranks obstacle overlaps last.
 _INSIDE_OBSTACLE = -1.0e6
 
 
-def require_room(margin, room):
-    """An agent-spacing margin (squared metres) that also requires `room` (metres, `obstacle_margin`) >= 0.
+def require_room(margin, room, gap):
+    """An agent-spacing margin (squared metres) that also requires `room` (metres, `obstacle_margin` with `gap`)
+    >= 0.
 
-    Room from the obstacles is a hard requirement even in `choose`'s fallback: a start or goal a little close to
-    another human sorts itself out as the crowd moves, one inside a box never does (its goal unreachable, or the
-    human stuck in the wall). So every candidate without room ranks below every candidate with room, and among
-    themselves by room."""
-    return jnp.where(room >= 0.0, margin, _INSIDE_OBSTACLE + room)
+    In `choose`'s fallback (no candidate keeps every gap) a candidate whose body overlaps an obstacle ranks below
+    every other: a start or goal a little close to a human or a wall sorts itself out as the crowd moves, one in
+    a wall never does (its goal unreachable, or the human stuck in the wall)."""
+    return jnp.where(room + gap >= 0.0, jnp.minimum(margin, room), _INSIDE_OBSTACLE + room)
 
 
 def with_obstacles(margin, candidates, own_radius, layout, gap):
     """An agent-spacing margin also requiring room from the obstacles (`require_room`)."""
     room = obstacle_margin(candidates, own_radius, layout, gap)
-    return margin if room is None else require_room(margin, room)
+    return margin if room is None else require_room(margin, room, gap)
 
 
 def choose(candidates, margin):
