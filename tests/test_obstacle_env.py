@@ -68,6 +68,19 @@ def test_crowded_draws_put_no_start_or_goal_inside_an_obstacle():
         assert room[active].min() >= 0.0, f"a human's {what} {-room[active].min():.2f} m inside an obstacle"
 
 
+def test_a_fallback_draw_may_crowd_a_human_or_a_wall_but_never_overlaps_an_obstacle():
+    from tgrf_jax.env.scenarios.sampling import choose, with_obstacles
+
+    wall = obstacles_lib.from_polygons([[(0.0, -5.0), (0.0, 5.0)]])
+    radius, gap = jnp.float32(0.3), 0.1
+    # x is the distance from the wall: A overlaps it, B keeps less than the gap, C keeps all of it
+    candidates = jnp.array([[0.25, 0.0], [0.35, 0.0], [2.0, 0.0]])
+    spacing = jnp.array([10.0, -0.3, -0.4])  # room from the other humans (squared metres): none keeps its gap
+    margin = with_obstacles(spacing, candidates, radius, wall, gap)
+    # B: the wall's gap weighs like the humans' (C crowds a human more), but A's overlap rules it out
+    assert np.allclose(choose(candidates, margin), [0.35, 0.0])
+
+
 def test_the_intersections_cross_corridor_is_one_way_and_streams_persist():
     env = CrowdNavEnv(dict(scenario="intersection", **SF))
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(7), 64))[1]
