@@ -11,6 +11,7 @@ import pytest
 from tgrf_jax.config import OBSTACLE_SCENARIOS, ConfigError, EnvConfig
 from tgrf_jax.env import OBSTACLE_COLLISION, CrowdNavEnv, sensing
 from tgrf_jax.env import obstacles as obstacles_lib
+from tgrf_jax.env.scenarios.sampling import choose, with_obstacles
 
 # Social Force humans keep these tests independent of the ORCA solver's obstacle lines (tested on their own).
 SF = dict(human_policy="social_force")
@@ -63,8 +64,6 @@ def test_crowded_draws_put_no_start_or_goal_inside_an_obstacle():
 
 
 def test_a_fallback_draw_may_crowd_a_human_or_a_wall_but_never_overlaps_an_obstacle():
-    from tgrf_jax.env.scenarios.sampling import choose, with_obstacles
-
     wall = obstacles_lib.from_polygons([[(0.0, -5.0), (0.0, 5.0)]])
     radius, gap = jnp.float32(0.3), 0.1
     # x is the distance from the wall: A overlaps it, B keeps less than the gap, C keeps all of it
