@@ -298,15 +298,16 @@ class EnvConfig:
     )
 
     # --- numeric (traced) --------------------------------------------------------------------------
-    active_humans_min: float | None = traced(
+    active_humans_min: int | None = traced(
         None,
+        whole=True,
         low=0,
         high=MAX_HUMANS,
         doc="fewest humans present in an episode: the count is drawn per episode ~ U{min..max} out of the "
         "env.num_humans slots (None: env.num_humans)",
     )
-    active_humans_max: float | None = traced(
-        None, low=0, high=MAX_HUMANS, doc="most humans present in an episode (None: env.num_humans)"
+    active_humans_max: int | None = traced(
+        None, whole=True, low=0, high=MAX_HUMANS, doc="most humans present in an episode (None: env.num_humans)"
     )
     scenario_weights: tuple | None = traced(
         None,
@@ -401,6 +402,7 @@ class EnvConfig:
     )
     detection_latency: int = traced(
         0,
+        whole=True,
         low=0,
         high=MAX_DETECTION_LATENCY,
         doc="steps by which detections are late (whole steps, at most env.max_detection_latency)",
@@ -415,11 +417,10 @@ class EnvConfig:
     )
 
     def __post_init__(self):
-        for name in ("active_humans_min", "active_humans_max", "detection_latency"):
-            value = getattr(self, name)
-            if value is not None:
-                value = _coerce(value, 0, f"env.{name}")  # a count: whole numbers only
-                object.__setattr__(self, name, value)
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.metadata.get("whole") and value is not None:
+                object.__setattr__(self, f.name, _coerce(value, 0, f"env.{f.name}"))
         check_fields(self, "env", names=("scenario",))  # first: the checks below read the scenario
         if self.scenario != "mix":
             for name in ("mix_scenarios", "scenario_weights"):
@@ -832,6 +833,13 @@ def config_fields() -> list[str]:
         for f in dataclasses.fields(TrainConfig)
         for g in dataclasses.fields(type(f.default_factory()))
     ]
+
+
+def config_field(dotted: str) -> dataclasses.Field:
+    """The declaration of a dotted field of a TrainConfig (its metadata: range, doc, traced, whole)."""
+    section, name = dotted.split(".", 1)
+    cls = type(next(f for f in dataclasses.fields(TrainConfig) if f.name == section).default_factory())
+    return next(f for f in dataclasses.fields(cls) if f.name == name)
 
 
 def griddable_fields() -> list[str]:

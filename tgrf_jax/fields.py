@@ -25,8 +25,11 @@ class ConfigError(ValueError):
     """A configuration value or key is invalid; the message names the field and what is allowed."""
 
 
-def spec(default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc="", traced=False):
-    """A static dataclass field with its allowed range or choices (`traced=True`: see `traced`)."""
+def spec(
+    default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc="", traced=False, whole=False
+):
+    """A static dataclass field with its allowed range or choices (`traced=True`: see `traced`; `whole=True`: a count,
+    whole numbers only, stored as an int)."""
     return dataclasses.field(
         default=default,
         metadata=dict(
@@ -37,6 +40,7 @@ def spec(default, *, low=None, high=None, low_inclusive=True, high_inclusive=Tru
             choices=choices,
             doc=doc,
             traced=traced,
+            whole=whole,
         ),
     )
 

@@ -125,7 +125,9 @@ def parse_objective(text: str) -> Objective:
     try:
         tree = ast.parse(text.strip(), mode="eval")
     except SyntaxError as e:
-        raise ConfigError(f"--objective {text!r}: syntax error at column {e.offset}: {e.msg}") from None
+        # the parser reports an expression cut short (a trailing operator) at offset 0
+        where = f"at column {e.offset}" if e.offset and e.offset <= len(text.strip()) else "at its end"
+        raise ConfigError(f"--objective {text!r}: syntax error {where}: {e.msg}") from None
     names: list[str] = []
     fn = _compile(tree, text.strip(), names, set(METRICS) | set(_eval_result_fields()))
     if not names:

@@ -1,8 +1,9 @@
 """The search space of a tune: `--space FIELD=LO:HI[:log]` items, checked before anything compiles.
 
-A searchable field is any numeric traced field (`tgrf_jax.config.griddable_fields`, less `reward.scheme`), so
-every member of a population shares one compiled program. Each bound is checked by the config's own range
-checks, so a space can never hand a member a value that `tgrf-train` would refuse.
+A searchable field is any traced field that holds one real number (`tgrf_jax.config.griddable_fields`, less
+`reward.scheme`, the whole-number counts and the per-entry weight lists), so every member of a population shares
+one compiled program and PBT's multiplicative steps stay within the field's kind. Each bound is checked by the
+config's own range checks, so a space can never hand a member a value that `tgrf-train` would refuse.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import math
 
 import numpy as np
 
-from tgrf_jax.config import ConfigError, TrainConfig, config_fields, griddable_fields
+from tgrf_jax.config import ConfigError, TrainConfig, config_field, config_fields, griddable_fields
 from tgrf_jax.fields import set_dotted
 
 __all__ = ["SearchDim", "draw_values", "hparams_path", "parse_space", "searchable_fields"]
@@ -32,9 +33,24 @@ class SearchDim:
         return f"{self.name}={self.low!r}:{self.high!r}" + (":log" if self.log else "")  # exact round trip
 
 
+def _unsearchable_reason(name: str) -> str | None:
+    """Why a griddable field cannot be searched, or None when it can."""
+    if name == "reward.scheme":
+        return "a scheme is a set of reward values, not one number"
+    field = config_field(name)
+    if field.metadata.get("whole"):
+        return (
+            "it is a whole-number count, which PBT's x0.8 / x1.25 steps would not keep whole; "
+            f"train its values as a grid instead (tgrf-sweep --grid {name}=V1,V2,...)"
+        )
+    if str(field.type).startswith("tuple"):
+        return "it holds one weight per entry of a list, not one number; set it per run with --set"
+    return None
+
+
 def searchable_fields() -> list[str]:
-    """Dotted names that `--space` accepts: the numeric traced fields."""
-    return [name for name in griddable_fields() if name != "reward.scheme"]
+    """Dotted names that `--space` accepts: the traced fields that hold one real number."""
+    return [name for name in griddable_fields() if _unsearchable_reason(name) is None]
 
 
 def hparams_path(name: str) -> tuple[str, ...]:
@@ -78,7 +94,9 @@ def parse_space(items: list[str], base: dict | None = None) -> tuple[SearchDim, 
         name, raw = (part.strip() for part in item.split("=", 1))
         if name not in searchable:
             if name in known or name == "reward.scheme":
-                why = "it is not a traced number, so members with different values cannot share one program"
+                why = _unsearchable_reason(name) or (
+                    "it is not a traced number, so members with different values cannot share one program"
+                )
                 raise ConfigError(f"--space {name}: cannot be searched: {why}; searchable: {', '.join(searchable)}")
             close = difflib.get_close_matches(name, known, n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
