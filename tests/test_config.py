@@ -32,6 +32,8 @@ CONFIGS = pathlib.Path(__file__).resolve().parents[1] / "configs"
         ({"human_v_pref_min": 2.0}, r"env.human_v_pref_min = 2.0 must be <= env.human_v_pref_max = 1.5"),
         ({"min_start_goal_dist": 100.0}, r"env.min_start_goal_dist = 100.0 cannot be met"),
         ({"dt": float("nan")}, r"env.dt = nan must be finite"),
+        ({"dt": "nan"}, r"env.dt = 'nan' must be a finite number"),  # YAML reads a bare nan as text
+        ({"num_humans": "inf"}, r"env.num_humans = 'inf' must be an integer$"),
         ({"robot_visible": "maybe"}, r"env.robot_visible = 'maybe' must be a boolean"),
     ],
 )

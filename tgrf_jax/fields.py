@@ -104,6 +104,8 @@ _EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
 
 
 def _number_text(value: str, name: str, kind: str) -> float:
+    if _looks_numeric(value) and not math.isfinite(float(value)):  # nan, inf: YAML reads them as text
+        raise ConfigError(f"{name} = {_show(value)} must be {'a finite number' if kind == 'a number' else kind}")
     if not _EXPONENT.fullmatch(value.strip()):
         raise ConfigError(
             f"{name} = {_show(value)} must be {kind}"
