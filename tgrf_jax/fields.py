@@ -26,7 +26,16 @@ class ConfigError(ValueError):
 
 
 def spec(
-    default, *, low=None, high=None, low_inclusive=True, high_inclusive=True, choices=None, doc="", traced=False, whole=False
+    default,
+    *,
+    low=None,
+    high=None,
+    low_inclusive=True,
+    high_inclusive=True,
+    choices=None,
+    doc="",
+    traced=False,
+    whole=False,
 ):
     """A static dataclass field with its allowed range or choices (`traced=True`: see `traced`; `whole=True`: a count,
     whole numbers only, stored as an int)."""
