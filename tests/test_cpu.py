@@ -30,6 +30,16 @@ def test_avx512_is_read_from_the_cpu_flags():
     assert not cpu.has_avx512("model name\t: avx512f-like name but no flags line\n")
 
 
+def test_the_recorded_cpu_names_its_vector_instruction_set():
+    # two EPYCs of one model name round differently when one has AVX-512: results must tell them apart
+    name = "model name\t: AMD EPYC\n"
+    assert cpu.cpu_model(name + AVX512_CPUINFO) == "AMD EPYC (AVX-512)"
+    assert cpu.cpu_model(name + AVX2_CPUINFO) == "AMD EPYC (AVX2)"
+    assert cpu.vector_isa("flags\t\t: fpu sse2 avx\n") == "AVX"
+    assert cpu.vector_isa("Features\t: fp asimd\n") is None
+    assert cpu.cpu_model(name) == "AMD EPYC"
+
+
 def test_importing_the_package_changes_no_process_state():
     code = (
         "import json, os; import tgrf_jax, tgrf_jax.cli, tgrf_jax.sweep, tgrf_jax.render, tgrf_jax.train; "

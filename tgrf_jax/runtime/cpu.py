@@ -23,14 +23,36 @@ WIDTH_FLAG = "--xla_cpu_prefer_vector_width"
 DEVICE_COUNT_FLAG = "--xla_force_host_platform_device_count"
 
 
+def _read_cpuinfo() -> str:
+    try:
+        return pathlib.Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return ""
+
+
+def _cpu_flags(cpuinfo: str) -> set[str]:
+    for line in cpuinfo.splitlines():
+        if line.startswith("flags"):
+            return set(line.split(":", 1)[1].split()) if ":" in line else set()
+    return set()
+
+
 def has_avx512(cpuinfo: str | None = None) -> bool:
     """Whether the CPU has AVX-512 Foundation (Linux ``/proc/cpuinfo``; False where that cannot be read)."""
-    if cpuinfo is None:
-        try:
-            cpuinfo = pathlib.Path("/proc/cpuinfo").read_text()
-        except OSError:
-            return False
-    return any(line.startswith("flags") and "avx512f" in line.split() for line in cpuinfo.splitlines())
+    return "avx512f" in _cpu_flags(_read_cpuinfo() if cpuinfo is None else cpuinfo)
+
+
+def vector_isa(cpuinfo: str | None = None) -> str | None:
+    """The widest x86 vector instruction set of the CPU ('AVX-512', 'AVX2', 'AVX'), None where unknown.
+
+    XLA:CPU compiles for the host's instruction set, so two CPUs sold under one model name but of different
+    generations (an AVX2 and an AVX-512 EPYC) round differently and train different runs from the same seed:
+    results record it beside the model name."""
+    flags = _cpu_flags(_read_cpuinfo() if cpuinfo is None else cpuinfo)
+    for flag, name in (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("avx", "AVX")):
+        if flag in flags:
+            return name
+    return None
 
 
 def backend_started() -> bool:
@@ -65,12 +87,11 @@ def configure_cpu(devices: int | None = None, *, wide_vectors: bool = True) -> d
     return added
 
 
-def cpu_model() -> str:
-    """The processor's model name (Linux /proc/cpuinfo; else what `platform` knows), for recording results."""
-    try:
-        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+def cpu_model(cpuinfo: str | None = None) -> str:
+    """The processor's model name and vector instruction set, e.g. 'AMD EPYC (AVX2)' (Linux /proc/cpuinfo; else
+    what `platform` knows), for recording results."""
+    cpuinfo = _read_cpuinfo() if cpuinfo is None else cpuinfo
+    name = next((line.split(":", 1)[1].strip() for line in cpuinfo.splitlines() if line.startswith("model name")), None)
+    name = name or platform.processor() or platform.machine()
+    isa = vector_isa(cpuinfo)
+    return f"{name} ({isa})" if isa else name
