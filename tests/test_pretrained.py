@@ -109,12 +109,15 @@ def test_shipped_policies_load_with_their_config(name):
     # checks the files against the manifest, every parameter's name, shape, dtype and finiteness
     config, params, meta = pretrained.load(name)
     assert meta["row"] in name
-    # the value its experiment compared (reward.scheme, reward.h_wall, ...) is the one the policy was trained with
-    (compared,) = [key for key in meta if key in config_fields()]
-    section, field = compared.split(".")
-    trained = getattr(getattr(config, section), field)
-    assert str(trained) == meta[compared] or (isinstance(trained, float) and trained == float(meta[compared])), (
-        compared,
-        trained,
-    )
+    # the values its experiment compared or searched (reward.scheme, reward.h_wall, a tune's reward.h_disc and
+    # reward.sigma_disc, ...) are the ones the policy was trained with
+    compared = [key for key in meta if key in config_fields()]
+    assert compared, sorted(meta)
+    for key in compared:
+        section, field = key.split(".")
+        trained = getattr(getattr(config, section), field)
+        assert str(trained) == str(meta[key]) or (isinstance(trained, float) and trained == float(meta[key])), (
+            key,
+            trained,
+        )
     assert 0.0 < meta["test"]["success_rate"] <= 1.0
