@@ -1,10 +1,15 @@
 """The runner's reporting seams (tgrf_jax.train.progress) and chunk plan, on synthetic metrics (no training)."""
 
 import csv
+import time
 
+import numpy as np
 import pytest
 
-from tgrf_jax.train.outer_loop import chunk_plan
+from tgrf_jax.config import RunConfig
+from tgrf_jax.storage.checkpoint import Checkpointer
+from tgrf_jax.train.directory import RunDirectory
+from tgrf_jax.train.outer_loop import chunk_plan, train_program
 from tgrf_jax.train.ppo import METRIC_NAMES, SUMMED_METRICS
 from tgrf_jax.train.progress import (
     CSV_FIELDS,
@@ -160,3 +165,49 @@ def test_chunk_plan_cuts_at_every_period():
     # lazy: the largest run allowed (2^31 - 1 one-update chunks) starts at once instead of listing its chunks first
     plan = chunk_plan(0, 2**31 - 1, 1, 1)
     assert [next(plan) for _ in range(3)] == [1, 1, 1]
+
+
+class _InstantProgram:
+    """A training program whose chunks take no time (the outer loop's accounting without training)."""
+
+    num_runs, num_updates, batch_size = 1, 8, 4
+
+    def init(self):
+        return 0
+
+    def is_compiled(self, state):
+        return True
+
+    def run_chunk(self, state, n_updates):
+        return state + n_updates, None
+
+    def run_metrics(self, raw):
+        return [dict.fromkeys(METRIC_NAMES, 0.0)]
+
+    def host_state(self, state):
+        return {"update": np.int32(state)}
+
+    def describe(self, state):
+        return "instant"
+
+
+def test_the_eta_counts_the_work_between_chunks(tmp_path):
+    # instant chunks, each followed by 0.05 s of work in a state_fn (as a periodic evaluation is): the ETA must
+    # expect that work, not only the chunks' own time
+    etas = {}
+    directory = RunDirectory(
+        root=tmp_path,
+        run_dirs=(tmp_path,),
+        say=lambda line: None,
+        checkpointer=Checkpointer(tmp_path / "checkpoints"),
+        progress_fns=(lambda step, metrics: etas.__setitem__(metrics.update, metrics.eta_s),),
+        state_fns=(lambda update, state: time.sleep(0.05),),
+        cut_every=(),
+        write_evals=False,
+        where="run dir",
+    )
+    result = train_program(_InstantProgram(), directory, RunConfig(log_every=2, checkpoint_every=8, eval_episodes=0))
+    assert result.updates == 8 and sorted(etas) == [2, 4, 6, 8]
+    # at update 4, one 0.05 s pause came after the 4 updates done, and 4 updates remain
+    assert etas[4] >= 0.05
+    assert etas[8] == 0.0

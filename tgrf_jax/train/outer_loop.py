@@ -135,7 +135,9 @@ def train_program(
     say(program.describe(state))
 
     end = total if stop_after_updates is None else min(total, stop_after_updates)
-    train_seconds, compiled, update = 0.0, 0, start
+    # the ETA spreads everything done between compiled chunks (periodic evaluations, checkpoints) over the updates,
+    # compilation apart; train_seconds (chunks alone) gives the throughput
+    train_seconds, loop_seconds, compiled, update = 0.0, 0.0, 0, start
     # the hosts of a multi-host sweep could see a signal at different chunks: there Ctrl-C stops at once
     with stop_requests(enabled=jax.process_count() == 1) as stop:
         for n in chunk_plan(start, end, run.log_every, run.checkpoint_every, *directory.cut_every):
@@ -158,7 +160,7 @@ def train_program(
                 total_updates=total,
                 env_steps=update * batch,
                 total_env_steps=total * batch,
-                eta_s=(total - update) * train_seconds / (update - start),
+                eta_s=(total - update) * (loop_seconds + dt) / (update - start),
                 runs=tuple(csv_row(m, update, update * batch, wall, n * batch / dt) for m in per_run),
                 total=csv_row(combine_runs(per_run), update, update * batch, wall, G * n * batch / dt),
             )
@@ -168,6 +170,7 @@ def train_program(
                 state_fn(update, state)
             if stop or update % run.checkpoint_every == 0 or update == total:
                 checkpointer.save(update, program.host_state(state))
+            loop_seconds += time.perf_counter() - c0
             if stop:
                 say(f"stopped by {stop.signal_name} at update {update}/{total}, with a checkpoint of that update")
                 raise KeyboardInterrupt
