@@ -15,6 +15,7 @@ from tgrf_jax.experiments import runner, search
 from tgrf_jax.experiments import spec as spec_lib
 from tgrf_jax.sweep import SweepSpec
 from tgrf_jax.tune.objective import parse_objective
+from tgrf_jax.tune.run import ancestry_schedule
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -287,9 +288,9 @@ def test_best_curve_steps_to_reach_and_the_grid_best():
     assert search.grid_best(tunes) is None
 
 
-def write_tune(row_dir, exp, row, finals, curves, lineage):
+def write_tune(row_dir, exp, row, finals, curves, lineage, pick=0):
     """A finished tune row as tgrf-tune leaves it: tune.yaml, each member's eval.json and final config.yaml,
-    eval_curves.csv, lineage.csv and tune.md."""
+    eval_curves.csv, lineage.csv, the schedule of its pick (member `pick`) and tune.md."""
     spec = spec_lib.tune_spec(exp, row)
     row_dir.mkdir(parents=True)
     (row_dir / "tune.yaml").write_text(yaml.safe_dump(spec.to_dict(), sort_keys=False))
@@ -311,6 +312,11 @@ def write_tune(row_dir, exp, row, finals, curves, lineage):
         w = csv.DictWriter(f, fieldnames=["update", "member", "score", "donor", *names])
         w.writeheader()
         w.writerows(lineage)
+    schedule = ancestry_schedule(spec, lineage, pick)
+    with open(row_dir / "schedule.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["update", "member", *names])
+        w.writeheader()
+        w.writerows(schedule)
     (row_dir / "tune.md").write_text("# Tune\n")
     (row_dir / "provenance.json").write_text(FINISHED)
     return spec
@@ -366,6 +372,7 @@ def test_the_report_compares_the_procedures_at_equal_env_steps(tmp_path):
         [(0.85, 4.0), (0.5, 1.0), (0.6, 2.0), (0.7, 3.0)],
         {1: [0.2, 0.3, 0.4, 0.5], 2: [0.85, 0.5, 0.6, 0.7]},
         lineage,
+        pick=3,  # PBT's own pick, on its selection episodes, is not the best member on the test
     )
     write_random(out / "rand", exp, exp.row("rand"), [0.3, 0.4, 0.5, 0.6], {1: [0.1] * 4, 2: [0.3, 0.4, 0.5, 0.6]})
     paths = search.write(exp, out)
@@ -378,17 +385,21 @@ def test_the_report_compares_the_procedures_at_equal_env_steps(tmp_path):
     assert float(grid["best_objective"]) == pytest.approx(0.8) and grid["env_steps_to_grid_best"] == str(4 * 256)
     assert pbt["procedure"] == "pbt" and float(pbt["best_objective"]) == pytest.approx(0.85)
     assert pbt["best_member"] == "m000" and float(pbt["reward.h_disc"]) == 4.0  # its value at the end
+    assert pbt["own_pick"] == "m003" and float(pbt["own_pick_objective"]) == pytest.approx(0.7)
+    assert grid["own_pick"] == "" and rand["own_pick_objective"] == ""
     assert pbt["env_steps_to_grid_best"] == str(2 * 128 * 4) and pbt["row_wall_s"] == "60.0"
     assert rand["reached_grid_best"] == "False" and rand["env_steps_to_grid_best"] == ""
     assert float(rand["best_objective"]) == pytest.approx(0.6) and rand["members"] == "4"
     md = (out / "report.md").read_text()
     assert "Rows finished: 3/3" in md
-    assert "| PBT | 1/1 | 1,024 | 0.8500 | 0.8500 | 1/1 | 1,024 |" in md
-    assert "| random | 1/1 | 1,024 | 0.6000 | 0.6000 | 0/1 | not reached |" in md
-    # the schedule: m000 copied m003 at update 1, so it starts from m003's draw
+    assert "| PBT | 1/1 | 1,024 | 0.8500 | 0.8500 | 0.7000 | 1/1 | 1,024 |" in md
+    assert "| random | 1/1 | 1,024 | 0.6000 | 0.6000 | – | 0/1 | not reached |" in md
+    assert "| 0.8500 | m000 | 4 | " in md and "| 85.0 | 0.0 | m003: 0.7000 | 1,024 |" in md
+    # the schedule is the pick's: m003 kept its own values at update 1, from its own draw
     start = spec_lib.tune_spec(exp, exp.row("pbt")).members()[3].values
-    assert "## The schedule PBT found" in md and f"| 0 | m003 | {start['reward.h_disc']:.4g} |" in md
-    assert "| 1 | m000 | 4 | 0.2 |" in md and "![the schedule of the best PBT repeat](pbt_schedule.png)" in md
+    assert "## The schedule PBT found" in md and "pbt (m003: 0.7000)" in md
+    assert f"| 0 | m003 | {start['reward.h_disc']:.4g} |" in md and "| 1 | m003 | 3 | 0.2 |" in md
+    assert "| 1 | m000 |" not in md and "![the schedule of the best PBT repeat](pbt_schedule.png)" in md
 
     # a damaged row is named, never reported
     (out / "rand" / "evals.csv").write_text("run,seed,success_rate\nx,0,abc\n")
@@ -409,6 +420,10 @@ def test_tune_rows_are_done_with_their_results_and_provenance(tmp_path):
     assert runner.row_state(row, "tune") == "resumable"
     (row / "tune.md").write_text("# Tune\n")
     assert runner.row_state(row, "tune") == "damaged"
+    assert "schedule.csv is missing or does not name one of the 1 members last" in runner.row_problem(row, "tune")
+    (row / "schedule.csv").write_text("update,member,reward.h_disc\n0,1,2.5\n")  # no member 1 in a population of 1
+    assert "schedule.csv is missing" in runner.row_problem(row, "tune")
+    (row / "schedule.csv").write_text("update,member,reward.h_disc\n0,0,2.5\n")
     assert "runs/m000/eval.json is missing or damaged" in runner.row_problem(row, "tune")
     (row / "runs" / "m000").mkdir(parents=True)
     (row / "runs" / "m000" / "eval.json").write_text(json.dumps({"results": {"learned": {"success_rate": 0.5}}}))

@@ -10,6 +10,10 @@ Each repeat of a procedure (one seed of the grid, one tune row, one random row) 
 
 The grid's best (the highest objective of any of its runs) is the target: a repeat reaches it at its first test
 where some member scores at least as much. The grid itself knows its runs' results only at their end.
+
+Every procedure's best is its best member on the test, the one measure the grid and random search have. PBT also
+picks a member without the test (the best on its own selection episodes): that pick is what a user of tgrf-tune
+gets, so it is reported beside the best, and its schedule is the one shown.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ REPORT_MD = "report.md"
 REPORT_CSV = "report.csv"
 PROGRESS_PNG = "best_objective.png"
 SCHEDULE_PNG = "pbt_schedule.png"
+TUNE_SCHEDULE = "schedule.csv"  # tgrf-tune's schedule of its pick: the last row's member is the pick
 TUNE_DONE = "tune.md"  # what tgrf-tune writes once its population is trained and scored
 PROCEDURES = ("grid", "tune", "random")  # row kinds, in the report's order
 _NAMES = {"grid": "grid", "tune": "PBT", "random": "random search"}  # where the rows give no label
@@ -59,6 +64,11 @@ class Repeat:
     steps_per_member: int
     members: tuple[Member, ...]
     curve: tuple[tuple[int, float], ...]  # (env steps of all members, best member's objective) at each test
+    pick: str | None = None  # the member the procedure picked apart from the test (PBT's); None: it has no other
+
+    @property
+    def picked(self) -> Member | None:
+        return next((m for m in self.members if m.name == self.pick), None)
 
     @property
     def env_steps(self) -> int:
@@ -114,17 +124,26 @@ def grid_best(repeats: Sequence[Repeat]) -> tuple[float, Repeat] | None:
     return holder.best.objective, holder
 
 
+def mean_std(values: Sequence[float]) -> tuple[float, float]:
+    """The mean and sample std of the finite values (nan where none are finite; the std needs two)."""
+    finite = np.array([v for v in values if math.isfinite(v)], float)
+    return (
+        float(finite.mean()) if finite.size else math.nan,
+        float(finite.std(ddof=1)) if finite.size > 1 else math.nan,
+    )
+
+
 def summary(repeats: Sequence[Repeat], target: float | None) -> dict:
     """One procedure's repeats: their best objectives' mean and sample std, and the env steps each took to reach
     the target (None: not reached)."""
-    best = np.array([r.best.objective for r in repeats], float)
-    finite = best[np.isfinite(best)]
+    best = [r.best.objective for r in repeats]
+    mean, std = mean_std(best)
     return {
         "repeats": len(repeats),
         "env_steps": sorted({r.env_steps for r in repeats}),
-        "best_mean": float(finite.mean()) if finite.size else math.nan,
-        "best_std": float(finite.std(ddof=1)) if finite.size > 1 else math.nan,
-        "best": float(finite.max()) if finite.size else math.nan,
+        "best_mean": mean,
+        "best_std": std,
+        "best": max((b for b in best if math.isfinite(b)), default=math.nan),
         "to_target": [None if target is None else steps_to_reach(r.curve, target) for r in repeats],
     }
 
@@ -183,6 +202,8 @@ def tune_problem(row_dir: pathlib.Path) -> str | None:
         names = [m["name"] for m in yaml.safe_load((row_dir / "tune.yaml").read_text())["members"]]
     except Exception:  # missing, unreadable or edited: the tune's own resume names it
         return "tune.yaml does not list the members"
+    if _tune_pick(row_dir, len(names)) is None:
+        return f"{TUNE_SCHEDULE} is missing or does not name one of the {len(names)} members last"
     for name in names:
         path = row_dir / "runs" / name / "eval.json"
         try:
@@ -192,6 +213,15 @@ def tune_problem(row_dir: pathlib.Path) -> str | None:
         if not math.isfinite(_float(sr)):
             return f"{portable(str(path))}: success_rate = {str(sr)[:20]!r} is not a finite number"
     return None
+
+
+def _tune_pick(row_dir: pathlib.Path, members: int) -> int | None:
+    """The index of the member a finished tune picked (its schedule's last holder), or None if unreadable."""
+    try:
+        pick = int(_read_csv(row_dir / TUNE_SCHEDULE)[-1]["member"])
+    except (OSError, ValueError, KeyError, TypeError, IndexError, csv.Error):
+        return None
+    return pick if 0 <= pick < members else None
 
 
 def tune_repeat(row: Row, row_dir: pathlib.Path, objective, names: Sequence[str]) -> Repeat:
@@ -216,7 +246,8 @@ def tune_repeat(row: Row, row_dir: pathlib.Path, objective, names: Sequence[str]
             )
         )
     curve = _curve_or_end(row_dir, {m.name for m in members}, objective, members, steps)
-    return Repeat(row.name, row.name, row.label, row.kind, steps, tuple(members), curve)
+    pick = members[_tune_pick(row_dir, len(members))].name
+    return Repeat(row.name, row.name, row.label, row.kind, steps, tuple(members), curve, pick)
 
 
 # --------------------------------------------------------------------------------------------- the grid it reads
@@ -317,6 +348,10 @@ def collect(exp: Experiment, out: pathlib.Path) -> Collected:
 # --------------------------------------------------------------------------------------------- writing
 
 
+def _mean_std_text(mean: float, std: float) -> str:
+    return _num(mean) + (f" ± {std:.4f}" if math.isfinite(std) else "")
+
+
 def _num(x, fmt: str = "{:.4f}") -> str:
     return "–" if x is None or not math.isfinite(x) else fmt.format(x)
 
@@ -344,6 +379,8 @@ def csv_fields(names: Sequence[str]) -> list[str]:
         *names,
         "success_rate",
         "collision_rate",
+        "own_pick",
+        "own_pick_objective",
         "grid_best",
         "reached_grid_best",
         "env_steps_to_grid_best",
@@ -357,7 +394,7 @@ def records(exp: Experiment, got: Collected, names: Sequence[str]) -> list[dict]
     target = grid_best(got.repeats)
     out = []
     for r in got.repeats:
-        best = r.best
+        best, picked = r.best, r.picked
         reached = None if target is None else steps_to_reach(r.curve, target[0])
         prov = got.wall.get(r.row, {})
         out.append(
@@ -375,6 +412,8 @@ def records(exp: Experiment, got: Collected, names: Sequence[str]) -> list[dict]
                 **{n: best.values.get(n) for n in names},
                 "success_rate": best.success_rate,
                 "collision_rate": best.collision_rate,
+                "own_pick": None if picked is None else picked.name,
+                "own_pick_objective": None if picked is None else picked.objective,
                 "grid_best": None if target is None else target[0],
                 "reached_grid_best": None if target is None else reached is not None,
                 "env_steps_to_grid_best": reached,
@@ -386,19 +425,19 @@ def records(exp: Experiment, got: Collected, names: Sequence[str]) -> list[dict]
 
 
 def best_tune(repeats: Sequence[Repeat]) -> Repeat | None:
-    """The PBT repeat with the best objective (the first of equals)."""
-    tunes = [r for r in repeats if r.procedure == "tune" and math.isfinite(r.best.objective)]
-    return max(tunes, key=lambda r: r.best.objective) if tunes else None
+    """The PBT repeat whose own pick scores best on the test (the first of equals)."""
+    tunes = [r for r in repeats if r.procedure == "tune" and r.picked and math.isfinite(r.picked.objective)]
+    return max(tunes, key=lambda r: r.picked.objective) if tunes else None
 
 
 def schedule_of(out: pathlib.Path, repeat: Repeat):
-    """(the tune's spec, the searched values along its best member's ancestry) from the tune row's lineage."""
+    """(the tune's spec, the searched values along its pick's ancestry) from the tune row's lineage."""
     from tgrf_jax.tune.run import ancestry_schedule
     from tgrf_jax.tune.spec import load_tune
 
     row_dir = out / repeat.row
     spec = load_tune(row_dir)
-    member = [m.name for m in spec.members()].index(repeat.best.name)
+    member = [m.name for m in spec.members()].index(repeat.pick)
     return spec, ancestry_schedule(spec, _read_csv(row_dir / "lineage.csv"), member)
 
 
@@ -471,7 +510,9 @@ def format_report(exp: Experiment, got: Collected, names: Sequence[str], recs: l
         f"{config.run.eval_episodes} test episodes (run.eval_seed {config.run.eval_seed}): each run's final "
         "evaluation, and for PBT and random search the same test every tenth of training. PBT chooses whom to copy "
         "on test episodes of its own (another seed), never on these. A repeat's best objective is its best "
-        "member's at the end; its env steps are all its members' together.",
+        "member's on these episodes at the end, the one measure the grid and random search have; PBT's own pick, the "
+        "member it ranks best on its own episodes (what tgrf-tune hands its user), is scored on them beside it. A "
+        "repeat's env steps are all its members' together.",
         "",
         f"Rows finished: {done}/{len(exp.rows)}.",
     ]
@@ -487,9 +528,9 @@ def format_report(exp: Experiment, got: Collected, names: Sequence[str], recs: l
         ]
     parts += [
         "",
-        "| procedure | repeats | env steps each | best objective (mean ± std) | highest | reached the grid's best "
-        "| env steps to reach it |",
-        "|---|---|---|---|---|---|---|",
+        "| procedure | repeats | env steps each | best objective (mean ± std) | highest | own pick (mean ± std) "
+        "| reached the grid's best | env steps to reach it |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for kind in PROCEDURES:
         reps = [r for r in got.repeats if r.procedure == kind]
@@ -497,16 +538,18 @@ def format_report(exp: Experiment, got: Collected, names: Sequence[str], recs: l
         if not rows:
             continue
         if not reps:
-            parts.append(f"| {procedure[kind]} | 0/{len(rows)} | … | … | … | … | … |")
+            parts.append(f"| {procedure[kind]} | 0/{len(rows)} | … | … | … | … | … | … |")
             continue
         s = summary(reps, None if target is None else target[0])
-        mean = _num(s["best_mean"]) + (f" ± {s['best_std']:.4f}" if math.isfinite(s["best_std"]) else "")
+        mean = _mean_std_text(s["best_mean"], s["best_std"])
+        picks = [r.picked.objective for r in reps if r.picked is not None]
+        own = _mean_std_text(*mean_std(picks)) if picks else "–"
         reached = "–" if target is None else f"{sum(x is not None for x in s['to_target'])}/{len(reps)}"
         to_target = "–" if target is None else "; ".join(_steps(x) for x in s["to_target"])
         total = len(rows) if kind != "grid" else len(reps)
         parts.append(
             f"| {procedure[kind]} | {len(reps)}/{total} | {', '.join(f'{x:,}' for x in s['env_steps'])} | {mean} | "
-            f"{_num(s['best'])} | {reached} | {to_target} |"
+            f"{_num(s['best'])} | {own} | {reached} | {to_target} |"
         )
     parts += [
         "",
@@ -514,19 +557,21 @@ def format_report(exp: Experiment, got: Collected, names: Sequence[str], recs: l
         "",
         "| repeat | procedure | members | env steps | best objective | best member | "
         + " | ".join(f"{_short(n)}" for n in names)
-        + " | SR (%) | collision (%) | env steps to the grid's best |",
-        "|" + "---|" * (9 + len(names)),
+        + " | SR (%) | collision (%) | own pick | env steps to the grid's best |",
+        "|" + "---|" * (10 + len(names)),
     ]
     for row in exp.rows:  # in the experiment's order, rows not (yet) reported included
         status = got.status.get(row.name, "…")
         if status != "done":
-            parts.append(f"| {row.name} | {procedure[row.kind]} | {status} |" + " |" * (6 + len(names)))
+            parts.append(f"| {row.name} | {procedure[row.kind]} | {status} |" + " |" * (7 + len(names)))
         for rec in (r for r in recs if r["row"] == row.name):
             parts.append(
                 f"| {rec['repeat']} | {procedure[row.kind]} | {rec['members']} | {rec['env_steps']:,} | "
                 f"{_num(rec['best_objective'])} | {rec['best_member']} | "
                 + " | ".join(_num(rec[n], "{:.4g}") for n in names)
                 + f" | {_num(100 * rec['success_rate'], '{:.1f}')} | {_num(100 * rec['collision_rate'], '{:.1f}')} | "
+                + ("–" if rec["own_pick"] is None else f"{rec['own_pick']}: {_num(rec['own_pick_objective'])}")
+                + " | "
                 + ("–" if rec["grid_best"] is None else _steps(rec["env_steps_to_grid_best"]))
                 + " |"
             )
@@ -536,9 +581,9 @@ def format_report(exp: Experiment, got: Collected, names: Sequence[str], recs: l
             "",
             "## The schedule PBT found",
             "",
-            f"The best PBT repeat, {repeat.name} (best objective {repeat.best.objective:.4f}): the searched values "
-            f"along its best member {repeat.best.name}'s ancestry (its `lineage.csv`), each held from the update "
-            "given to the next.",
+            f"The PBT repeat whose own pick scores best on the test, {repeat.name} ({repeat.pick}: "
+            f"{repeat.picked.objective:.4f}): the searched values along {repeat.pick}'s ancestry (the row's "
+            f"`{TUNE_SCHEDULE}`), each held from the update given to the next.",
             "",
             "| update | held by | " + " | ".join(f"`{n}`" for n in names) + " |",
             "|---" * (2 + len(names)) + "|",
